@@ -1,0 +1,250 @@
+"""The ``locus`` command: serve, import recordings, replay, evaluate."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from app.core.config import Settings
+
+
+def _settings(args: argparse.Namespace) -> Settings:
+    overrides = {
+        key: getattr(args, key)
+        for key in ("host", "port", "database_url", "workers", "broker", "home")
+        if getattr(args, key, None) is not None
+    }
+    return Settings(**overrides)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Upgrade the schema, make sure an admin key exists, and serve the API with workers."""
+    import uvicorn
+
+    from app.core.bootstrap import announce_admin_key, bootstrap_admin, prepare_database
+    from app.core.db import make_engine, make_sessionmaker
+    from app.core.logging import configure_logging
+    from app.main import create_app
+
+    configure_logging()
+    settings = _settings(args)
+    prepare_database(settings)
+    engine = make_engine(settings.resolved_database_url)
+    key = bootstrap_admin(sessions=make_sessionmaker(engine), settings=settings)
+    engine.dispose()
+    if key is not None:
+        announce_admin_key(key)
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level="info",
+        access_log=settings.access_log,
+    )
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Serve Locus with the demo site and simulated devices walking in it."""
+    import threading
+
+    import uvicorn
+
+    from app import demo
+    from app.core.bootstrap import prepare_database
+    from app.core.db import make_engine, make_sessionmaker, session_scope
+    from app.core.logging import configure_logging
+    from app.keys.service import create_key
+    from app.main import create_app
+
+    configure_logging()
+    settings = _settings(args)
+    if args.home is None:
+        settings = settings.model_copy(update={"home": settings.home / "demo"})
+    prepare_database(settings)
+    engine = make_engine(settings.resolved_database_url)
+    with session_scope(make_sessionmaker(engine)) as db:
+        admin = create_key(db=db, role="admin", site_id=None, label="demo")
+    engine.dispose()
+    server = uvicorn.Server(
+        uvicorn.Config(create_app(settings), host=settings.host, port=settings.port)
+    )
+    stop = threading.Event()
+    base = f"http://{settings.host}:{settings.port}"
+
+    def run_devices() -> None:
+        while not server.started and not stop.wait(0.2):
+            pass
+        demo.install(base, admin)
+        print(
+            f"\nLocus demo: open {base}/ and sign in with this admin key:\n  {admin}\n", flush=True
+        )
+        demo.simulate(base, admin, stop=stop)
+
+    threading.Thread(target=run_devices, name="demo-devices", daemon=True).start()
+    try:
+        server.run()
+    finally:
+        stop.set()
+    return 0
+
+
+def cmd_import_ilc(args: argparse.Namespace) -> int:
+    """Import a Microsoft ILC site folder (floors and walks) into a Locus server."""
+    import time
+
+    from app.importers.ilc import import_site
+
+    key = args.key or os.environ.get("LOCUS_ADMIN_KEY")
+    if not key:
+        print("an admin key is needed: --key or LOCUS_ADMIN_KEY", file=sys.stderr)
+        return 2
+    started = time.perf_counter()
+    summary = import_site(
+        Path(args.site_dir),
+        site_id=args.site_id,
+        server=args.server,
+        key=key,
+        rooms_walkable=args.rooms_walkable,
+        limit=args.limit,
+        floors=args.floors,
+    )
+    print(
+        f"imported {summary.floors} floors and {summary.surveys} walks "
+        f"({summary.samples} samples) in {time.perf_counter() - started:.1f} s"
+    )
+    return 0
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Run one filter worker node on the Redis broker until SIGTERM."""
+    from app.workers.redis_broker import redis_worker_main
+
+    settings = _settings(args)
+    if settings.broker == "memory":
+        print("a worker node needs --broker redis://...", file=sys.stderr)
+        return 2
+    redis_worker_main(settings.model_dump_json())
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Replay site1-style walks through a server and print its accuracy on them."""
+    import httpx
+    import numpy as np
+
+    from app.datasets.ilc import read_walk, site_walks
+    from app.evaluation.metrics import HEADER, error_stats, format_row
+    from app.evaluation.split import walk_split
+    from app.replay import replay_walk, score
+
+    key = args.key or os.environ.get("LOCUS_ADMIN_KEY")
+    walks = site_walks(Path(args.site_dir))
+    _, test = walk_split([p.name.split(".")[0] for _, p in walks], args.test_fraction)
+    chosen = [(f, p) for f, p in walks if p.name.split(".")[0] in set(test)][: args.limit]
+    errors, floor_hits = [], []
+    with httpx.Client(
+        base_url=args.server, headers={"Authorization": f"Bearer {key}"}, timeout=120
+    ) as http:
+        for floor, path in chosen:
+            walk = read_walk(path, floor)
+            positions = replay_walk(
+                http, walk, site_id=args.site_id, device_id=f"{args.prefix}{walk.walk_id}"
+            )
+            scored = score(walk, positions)
+            errors.append(scored.errors)
+            floor_hits.append(scored.floor_ok)
+    hits = np.concatenate(floor_hits) if floor_hits else np.zeros(0, bool)
+    print(HEADER)
+    print(
+        format_row(
+            f"replay of {len(chosen)} test walks",
+            error_stats(np.concatenate(errors)),
+            1 - hits.mean() if hits.size else float("nan"),
+        )
+    )
+    return 0
+
+
+EVALUATIONS = {
+    "pdr": "app.evaluation.pdr_eval",
+    "trackfit": "app.evaluation.trackfit_eval",
+    "ble-flat": "app.evaluation.ble_flat_eval",
+    "uwb": "app.evaluation.uwb_eval",
+    "locator": "app.evaluation.locator_eval",
+    "fingerprint": "app.evaluation.fingerprint_eval",
+}
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Run one accuracy evaluation on the recordings (its own options follow its name)."""
+    import importlib
+
+    module = importlib.import_module(EVALUATIONS[args.name])
+    module.main(args.rest)
+    return 0
+
+
+def _server_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", help="bind address (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="port (default 8000)")
+    parser.add_argument("--database-url", help="SQLAlchemy URL (default: embedded SQLite)")
+    parser.add_argument("--workers", type=int, help="filter worker processes (default: cores)")
+    parser.add_argument("--broker", help="'memory' (default) or redis://host:port/db")
+    parser.add_argument("--home", help="folder for local state (default ./var)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser."""
+    parser = argparse.ArgumentParser(prog="locus", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    serve = commands.add_parser("serve", help="run the API and filter workers")
+    _server_args(serve)
+    serve.set_defaults(func=cmd_serve)
+    worker = commands.add_parser("worker", help="run a filter worker node (Redis broker)")
+    _server_args(worker)
+    worker.set_defaults(func=cmd_worker)
+    ilc = commands.add_parser("import-ilc", help="import a Microsoft ILC site folder")
+    ilc.add_argument("site_dir", help="e.g. ../shared/data/ilc/site1")
+    ilc.add_argument("--site-id", required=True)
+    ilc.add_argument("--server", default="http://127.0.0.1:8000")
+    ilc.add_argument("--key", help="admin key (default: $LOCUS_ADMIN_KEY)")
+    ilc.add_argument(
+        "--rooms-walkable",
+        action="store_true",
+        help="shops become walkable rooms instead of barriers",
+    )
+    ilc.add_argument("--limit", type=int, help="at most this many walks per floor")
+    ilc.add_argument("--floors", nargs="+", help="only these floors (e.g. F1 F2)")
+    ilc.set_defaults(func=cmd_import_ilc)
+    replay = commands.add_parser("replay", help="replay ILC test walks through a server")
+    replay.add_argument("site_dir", help="e.g. ../shared/data/ilc/site1")
+    replay.add_argument("--site-id", required=True)
+    replay.add_argument("--server", default="http://127.0.0.1:8000")
+    replay.add_argument("--key", help="admin or device key (default: $LOCUS_ADMIN_KEY)")
+    replay.add_argument("--limit", type=int, help="at most this many test walks")
+    replay.add_argument("--test-fraction", type=float, default=0.2)
+    replay.add_argument("--prefix", default="replay-", help="device id prefix")
+    replay.set_defaults(func=cmd_replay)
+    evaluate = commands.add_parser("eval", help="accuracy on the recordings in ../shared/data")
+    evaluate.add_argument("name", choices=sorted(EVALUATIONS))
+    evaluate.add_argument("rest", nargs=argparse.REMAINDER, help="options of that evaluation")
+    evaluate.set_defaults(func=cmd_eval)
+    demo = commands.add_parser("demo", help="serve with a demo site and simulated devices")
+    _server_args(demo)
+    demo.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``locus`` console script."""
+    args = build_parser().parse_args(argv)
+    func: Callable[[argparse.Namespace], int] = args.func
+    return func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+"""Start-up chores: schema upgrade and the bootstrap admin key."""
+
+from __future__ import annotations
+
+import sys
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core.config import Settings
+from app.core.db import session_scope, upgrade_database
+from app.keys.service import create_key, ensure_key, has_admin
+
+
+def bootstrap_admin(*, sessions: sessionmaker[Session], settings: Settings) -> str | None:
+    """Make sure an admin key exists; return a generated key (to print once) or None.
+
+    ``LOCUS_ADMIN_KEY`` is stored (hashed) if new. Without it, the first start
+    generates a key; only its hash is kept, so it is shown this once.
+    """
+    with session_scope(sessions) as db:
+        if settings.admin_key:
+            ensure_key(db=db, key=settings.admin_key, role="admin", label="bootstrap")
+            return None
+        if has_admin(db=db):
+            return None
+        return create_key(db=db, role="admin", site_id=None, label="bootstrap")
+
+
+def prepare_database(settings: Settings) -> None:
+    """Upgrade the schema to the newest revision."""
+    upgrade_database(settings.resolved_database_url)
+
+
+def announce_admin_key(key: str) -> None:
+    """Print a generated admin key once, where the operator will see it."""
+    print(
+        f"\nLocus generated the admin key (shown once, only its hash is stored):\n  {key}\n",
+        file=sys.stderr,
+        flush=True,
+    )

@@ -1,0 +1,95 @@
+"""Request dependencies: settings, database session, authentication, site access."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, Request, WebSocket
+from sqlalchemy.orm import Session, sessionmaker
+from starlette.concurrency import run_in_threadpool
+
+from app.core.config import Settings
+from app.core.errors import ApiError
+from app.core.security import Principal
+from app.keys.service import cached_key, resolve_key
+
+
+async def _settings(request: Request) -> Settings:
+    return request.app.state.locus.settings
+
+
+SettingsDep = Annotated[Settings, Depends(_settings)]
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    """Yield a session from the app's factory; handlers commit what they change."""
+    session = request.app.state.sessions()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+SessionDep = Annotated[Session, Depends(get_db)]
+
+
+def bearer_key(authorization: str | None, query_key: str | None = None) -> str | None:
+    """Return the key from ``Authorization: Bearer`` or, for WebSockets, ``?key=``."""
+    if authorization:
+        scheme, _, value = authorization.partition(" ")
+        if scheme.lower() == "bearer" and value.strip():
+            return value.strip()
+    return query_key or None
+
+
+async def authenticate(request: Request) -> Principal:
+    """Resolve the caller's key or answer 401 (async: no thread hop on the ingest path)."""
+    key = bearer_key(request.headers.get("authorization"))
+    if key is None:
+        raise ApiError(401, "missing API key", headers={"WWW-Authenticate": "Bearer"})
+    cached, principal = cached_key(key)
+    if not cached:
+        principal = await run_in_threadpool(_lookup, request.app.state.sessions, key)
+    if principal is None:
+        raise ApiError(401, "unknown API key", headers={"WWW-Authenticate": "Bearer"})
+    return principal
+
+
+PrincipalDep = Annotated[Principal, Depends(authenticate)]
+
+
+def _lookup(sessions: sessionmaker[Session], key: str) -> Principal | None:
+    with sessions() as db:
+        return resolve_key(db=db, key=key)
+
+
+async def require_admin(principal: PrincipalDep) -> Principal:
+    """Answer 403 unless the caller is an admin."""
+    if principal.role != "admin":
+        raise ApiError(403, "admin key required")
+    return principal
+
+
+AdminDep = Annotated[Principal, Depends(require_admin)]
+
+
+async def site_reader(site_id: str, principal: PrincipalDep) -> Principal:
+    """Answer 403 unless the caller may read ``site_id`` (admin, or its viewer)."""
+    if not principal.can_read(site_id):
+        raise ApiError(403, f"this key may not read site '{site_id}'")
+    return principal
+
+
+SiteReaderDep = Annotated[Principal, Depends(site_reader)]
+
+
+def websocket_principal(websocket: WebSocket) -> Principal | None:
+    """Resolve a WebSocket's key from the header or ``?key=``; None if absent or unknown."""
+    key = bearer_key(websocket.headers.get("authorization"), websocket.query_params.get("key"))
+    if key is None:
+        return None
+    cached, principal = cached_key(key)
+    if not cached:
+        principal = _lookup(websocket.app.state.sessions, key)
+    return principal

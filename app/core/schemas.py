@@ -1,0 +1,30 @@
+"""Shared schema pieces: identifiers and pages."""
+
+from __future__ import annotations
+
+from typing import Annotated, Generic, TypeVar
+
+from fastapi import Path, Query
+from pydantic import BaseModel, StringConstraints
+
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}$"
+Identifier = Annotated[str, StringConstraints(pattern=ID_PATTERN)]
+DeviceIdentifier = Annotated[
+    str, StringConstraints(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,127}$")
+]
+
+SiteIdPath = Annotated[str, Path(pattern=ID_PATTERN, description="Site identifier")]
+FloorIdPath = Annotated[str, Path(pattern=ID_PATTERN, description="Floor identifier")]
+LimitQuery = Annotated[int, Query(ge=1, le=1000)]
+OffsetQuery = Annotated[int, Query(ge=0, le=10**9)]
+
+T = TypeVar("T")
+
+
+class Page(BaseModel, Generic[T]):
+    """A page of a listing: the items, the total count and where the page starts."""
+
+    items: list[T]
+    total: int
+    limit: int
+    offset: int

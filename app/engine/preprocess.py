@@ -1,0 +1,193 @@
+"""The measurement preprocessor of Eurasian patent 047000: positioning windows.
+
+The patent's preprocessor cuts a device's continuous stream into
+"positioning time ranges"; each one is positioned once. Windows here are
+``T_u`` long and aligned on multiples of ``T_u`` of measurement time, so
+feeding a stream in any chunking yields the same windows. A window is
+released when a later sample shows that it is complete (streams arrive in
+time order), or on ``flush``. Steps the dead-reckoning detects after their
+window was released are applied in the next window rather than dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from app.engine.pdr import Steps
+from app.engine.samples import Fixes, Pressure, RssiReadings
+
+
+@dataclass(frozen=True)
+class PreprocessParams:
+    """Constants of the preprocessor.
+
+    Attributes
+    ----------
+    window_ms : int
+        T_u of the patent (1000 ms): the positioning window, which is also the
+        shortest interval between two weight updates of a particle filter.
+    """
+
+    window_ms: int = 1000
+
+
+@dataclass(frozen=True)
+class Window:
+    """Everything measured in ``[t0, t1)`` (ms), plus late steps carried into it."""
+
+    t0: int
+    t1: int
+    rssi: RssiReadings = field(default_factory=RssiReadings)
+    steps: Steps = field(default_factory=Steps)
+    fixes: Fixes = field(default_factory=Fixes)
+    pressure: Pressure = field(default_factory=Pressure)
+
+    @property
+    def t_last(self) -> int:
+        """Time (ms) of the newest measurement in the window; ``t1 - 1`` when it has none."""
+        times = [a.t for a in (self.rssi, self.steps, self.fixes, self.pressure) if len(a)]
+        return int(max(int(t.max()) for t in times)) if times else self.t1 - 1
+
+
+def window_start(t: np.ndarray, window_ms: int) -> np.ndarray:
+    """Return the start (ms) of the window holding each time ``t`` (ms)."""
+    # t₀ = ⌊t / T_u⌋ · T_u
+    return (np.asarray(t, dtype=np.int64) // window_ms) * window_ms
+
+
+def split_sorted(t: np.ndarray, window_ms: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split sorted times into windows.
+
+    Returns
+    -------
+    starts : ndarray of int64, shape (k,)
+        Start (ms) of each non-empty window, increasing.
+    bounds : ndarray of intp, shape (k + 1,)
+        Samples ``bounds[i]:bounds[i + 1]`` fall in window i.
+    """
+    w = window_start(t, window_ms)
+    if w.size == 0:
+        return w, np.zeros(1, dtype=np.intp)
+    cut = np.flatnonzero(w[1:] != w[:-1]) + 1
+    bounds = np.concatenate([[0], cut, [w.size]]).astype(np.intp)
+    return w[bounds[:-1]], bounds
+
+
+def group_by_floor(tx: np.ndarray, tx_floor: np.ndarray) -> dict[int, np.ndarray]:
+    """Return, per floor index, the positions of the readings whose transmitter is on it."""
+    floors = np.asarray(tx_floor)[np.asarray(tx, dtype=np.intp)]
+    if floors.size == 0:
+        return {}
+    if floors.min() == floors.max():
+        return {int(floors[0]): np.arange(floors.size)}
+    order = np.argsort(floors, kind="stable")
+    keys, first = np.unique(floors[order], return_index=True)
+    bounds = np.append(first, order.size)
+    return {int(k): order[bounds[i] : bounds[i + 1]] for i, k in enumerate(keys)}
+
+
+def mean_by_transmitter(
+    tx: np.ndarray, rssi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the heard transmitters (sorted), their mean RSSI (dBm) and reading counts."""
+    keys, inverse = np.unique(np.asarray(tx), return_inverse=True)
+    count = np.bincount(inverse, minlength=keys.size)
+    # s̄_m = Σ s_k / n_m over the readings of transmitter m
+    mean = np.bincount(inverse, weights=rssi, minlength=keys.size) / count
+    return keys, mean, count
+
+
+def _take(arrays: Any, index: np.ndarray) -> Any:
+    """Return a copy of a samples dataclass keeping rows ``index``."""
+    return type(arrays)(**{k: v[index] for k, v in vars(arrays).items()})
+
+
+def _concat(a: Any, b: Any) -> Any:
+    """Concatenate two samples dataclasses of the same type row-wise."""
+    return type(a)(**{k: np.concatenate([v, getattr(b, k)]) for k, v in vars(a).items()})
+
+
+_KINDS = ("rssi", "steps", "fixes", "pressure")
+_EMPTY = {"rssi": RssiReadings, "steps": Steps, "fixes": Fixes, "pressure": Pressure}
+
+
+class Preprocessor:
+    """Buffers a device's measurements and releases complete positioning windows.
+
+    Parameters
+    ----------
+    params : PreprocessParams
+    state : dict, optional
+        A :meth:`snapshot` to resume from.
+    """
+
+    def __init__(self, params: PreprocessParams, state: dict[str, Any] | None = None) -> None:
+        self.params = params
+        state = state or {}
+        self.open_from = int(state.get("open_from", np.iinfo(np.int64).min))
+        self.newest = int(state.get("newest", np.iinfo(np.int64).min))
+        self.pending: dict[str, Any] = {}
+        for kind in _KINDS:
+            saved = state.get(kind)
+            empty = _EMPTY[kind]()
+            if saved is None:
+                self.pending[kind] = empty
+            else:
+                self.pending[kind] = type(empty)(
+                    **{k: np.asarray(saved[k], dtype=v.dtype) for k, v in vars(empty).items()}
+                )
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return the pending measurements and window bookkeeping."""
+        out: dict[str, Any] = {"open_from": self.open_from, "newest": self.newest}
+        for kind in _KINDS:
+            out[kind] = dict(vars(self.pending[kind]))
+        return out
+
+    def push(
+        self,
+        *,
+        rssi: RssiReadings | None = None,
+        steps: Steps | None = None,
+        fixes: Fixes | None = None,
+        pressure: Pressure | None = None,
+    ) -> list[Window]:
+        """Add time-ordered measurements; return the windows they complete, oldest first."""
+        for kind, new in zip(_KINDS, (rssi, steps, fixes, pressure), strict=True):
+            if new is not None and len(new):
+                old = self.pending[kind]
+                self.pending[kind] = _concat(old, new) if len(old) else new
+                self.newest = max(self.newest, int(new.t.max()))
+        if self.newest == np.iinfo(np.int64).min:
+            return []
+        w = self.params.window_ms
+        # windows ending at or before the newest sample's window start are complete
+        return self._release(int(window_start(np.array([self.newest]), w)[0]))
+
+    def flush(self) -> list[Window]:
+        """Release every pending measurement, the last window possibly incomplete."""
+        return self._release(np.iinfo(np.int64).max)
+
+    def _release(self, before: int) -> list[Window]:
+        w = self.params.window_ms
+        kinds = [k for k in _KINDS if len(self.pending[k])]
+        if not kinds:
+            return []
+        # window of each pending sample; late ones join the first open window
+        start = {k: np.maximum(window_start(self.pending[k].t, w), self.open_from) for k in kinds}
+        all_starts = np.unique(np.concatenate([start[k] for k in kinds]))
+        ready = all_starts[all_starts < before]
+        if ready.size == 0:
+            return []
+        windows = []
+        for t0 in ready.tolist():
+            parts = {k: _take(self.pending[k], np.flatnonzero(start[k] == t0)) for k in kinds}
+            windows.append(Window(t0=t0, t1=t0 + w, **parts))
+        cut = int(ready[-1]) + w
+        for kind in kinds:
+            self.pending[kind] = _take(self.pending[kind], np.flatnonzero(start[kind] >= cut))
+        self.open_from = cut
+        return windows

@@ -1,0 +1,119 @@
+"""Measurement arrays the engine consumes, one dataclass per kind.
+
+The service turns JSON samples into these (ids already mapped to indices into
+the site's tables) so that no algorithm touches strings or dicts. Times are
+int64 milliseconds of measurement time; absent IMU fields are NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def _empty(shape: tuple[int, ...] = (0,), dtype: type = float) -> np.ndarray:
+    return np.zeros(shape, dtype=dtype)
+
+
+@dataclass
+class RssiReadings:
+    """Received signal strengths of known transmitters (WiFi, BLE, locators).
+
+    ``tx`` indexes ``SiteModel.transmitters``; readings of unknown ids are
+    dropped (and counted) before they get here.
+    """
+
+    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
+    tx: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
+    rssi: np.ndarray = field(default_factory=_empty)
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+@dataclass
+class ImuSamples:
+    """Inertial samples: acc (m/s²), gyro (rad/s), mag (µT), Android rotation vector."""
+
+    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
+    acc: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    gyro: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    mag: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    rot: np.ndarray = field(default_factory=lambda: _empty((0, 4)))
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+@dataclass
+class Ranges:
+    """UWB two-way ranges (m) to anchors indexed into ``SiteModel.anchors``."""
+
+    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
+    anchor: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
+    range: np.ndarray = field(default_factory=_empty)
+    std: np.ndarray = field(default_factory=_empty)
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+@dataclass
+class Fixes:
+    """Position fixes computed elsewhere (e.g. a UWB gateway): x, y, z (m), floor index."""
+
+    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
+    xyz: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    floor: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
+    std: np.ndarray = field(default_factory=_empty)
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+@dataclass
+class Pressure:
+    """Barometer readings (hPa)."""
+
+    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
+    hpa: np.ndarray = field(default_factory=_empty)
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+@dataclass
+class Batch:
+    """Everything one device reported in one window of measurement time."""
+
+    rssi: RssiReadings = field(default_factory=RssiReadings)
+    imu: ImuSamples = field(default_factory=ImuSamples)
+    ranges: Ranges = field(default_factory=Ranges)
+    fixes: Fixes = field(default_factory=Fixes)
+    pressure: Pressure = field(default_factory=Pressure)
+
+    def __len__(self) -> int:
+        return (
+            len(self.rssi) + len(self.imu) + len(self.ranges) + len(self.fixes) + len(self.pressure)
+        )
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One position the engine emits.
+
+    ``floor`` indexes ``SiteModel.floors``; ``heading`` is degrees clockwise
+    from +y in [0, 360) or NaN when unknown; ``accuracy`` is the radius (m)
+    holding the true position with 68% probability.
+    """
+
+    t: int
+    x: float
+    y: float
+    z: float
+    floor: int
+    heading: float
+    accuracy: float
+    speed: float
+    method: str

@@ -1,0 +1,1 @@
+"""Accuracy measurements on the real recordings, split by walk, never by sample."""

@@ -1,0 +1,60 @@
+"""Floors: validate, store and read floor maps."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.floors.models import Floor
+from app.geometry.floormap import parse_floor_map, summarize
+from app.geometry.raster import floor_plan
+from app.sites.models import Site
+from app.sites.service import bump_map_version
+
+
+def get_floor(*, db: Session, site_id: str, floor_id: str) -> Floor | None:
+    """Return the floor or None."""
+    return db.get(Floor, (site_id, floor_id))
+
+
+def list_floors(*, db: Session, site_id: str) -> list[Floor]:
+    """Return the site's floors ordered by level."""
+    rows = db.scalars(select(Floor).where(Floor.site_id == site_id).order_by(Floor.level))
+    return list(rows)
+
+
+def put_floor(
+    *, db: Session, site: Site, floor_id: str, doc: dict[str, Any], raster_cell: float
+) -> Floor:
+    """Validate ``doc`` (raises FloorMapError listing every problem), rasterise and store it."""
+    fmap = parse_floor_map(doc)
+    plan = floor_plan(fmap, cell=raster_cell)
+    summary = summarize(fmap) | {
+        "raster": {
+            "cell": plan.cell,
+            "shape": list(plan.shape),
+            "free_cells": int(np.count_nonzero(plan.free)),
+        }
+    }
+    floor = get_floor(db=db, site_id=site.id, floor_id=floor_id)
+    if floor is None:
+        floor = Floor(site_id=site.id, floor_id=floor_id)
+        db.add(floor)
+    floor.level = fmap.level
+    floor.height = fmap.height
+    floor.name = fmap.name
+    floor.geojson = doc
+    floor.summary = summary
+    bump_map_version(db=db, site=site)
+    db.flush()
+    return floor
+
+
+def delete_floor(*, db: Session, site: Site, floor: Floor) -> None:
+    """Remove a floor from the site."""
+    db.delete(floor)
+    bump_map_version(db=db, site=site)
+    db.flush()

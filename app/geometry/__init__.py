@@ -1,0 +1,1 @@
+"""Floor maps: validation, the walkable area, rasters for the engine, importers."""

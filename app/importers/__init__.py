@@ -1,0 +1,1 @@
+"""Importers that turn public recording formats into Locus sites through the HTTP API."""

@@ -1,0 +1,134 @@
+"""Import a Microsoft Indoor Location Competition site: floors, then every walk as a survey.
+
+Everything goes through the public HTTP API, so the importer works against
+any Locus server and exercises the same validation as any other client.
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+from rich.progress import Progress
+
+from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_walk, site_walks
+
+
+@dataclass(frozen=True)
+class ImportSummary:
+    """What an import uploaded."""
+
+    floors: int
+    surveys: int
+    samples: int
+
+
+def _vector(row: np.ndarray) -> list[float] | None:
+    return None if np.isnan(row).any() else [round(float(v), 6) for v in row]
+
+
+def _plausible_tx(tx_power: float) -> bool:
+    # Some beacons advertise garbage (e.g. +69 dBm); the reading is kept, the field is not.
+    return not math.isnan(tx_power) and -128 <= tx_power <= 20
+
+
+def survey_body(walk: Walk, *, device_id: str) -> dict[str, Any]:
+    """Return the survey request for one walk (stale cached WiFi readings left out)."""
+    return {
+        "device_id": device_id,
+        "floor_id": walk.floor,
+        "name": walk.walk_id,
+        "waypoints": [{"t": int(t), "x": float(x), "y": float(y)} for t, x, y in walk.waypoints],
+        **walk_samples(walk),
+    }
+
+
+def walk_samples(walk: Walk) -> dict[str, list[dict[str, Any]]]:
+    """Return a walk's WiFi, BLE and IMU samples as ingest sample lists."""
+    wifi = fresh_wifi(walk.wifi)
+    imu = imu_samples(walk)
+    imu_rows = []
+    for i in range(len(imu)):
+        sample: dict[str, Any] = {"t": int(imu.t[i])}
+        for name, values in (
+            ("acc", imu.acc[i]),
+            ("gyro", imu.gyro[i]),
+            ("mag", imu.mag[i]),
+            ("rot", imu.rot[i]),
+        ):
+            vector = _vector(values)
+            if vector is not None:
+                sample[name] = vector
+        if len(sample) > 1:
+            imu_rows.append(sample)
+    beacons = walk.beacons
+    return {
+        "wifi": [
+            {
+                "t": int(wifi.t[i]),
+                "id": str(wifi.bssid[i]),
+                "rssi": float(wifi.rssi[i]),
+                "freq": int(wifi.freq[i]),
+            }
+            for i in range(len(wifi))
+        ],
+        "ble": [
+            {"t": int(beacons.t[i]), "id": str(beacons.id[i]), "rssi": float(beacons.rssi[i])}
+            | (
+                {"tx_power": float(beacons.tx_power[i])}
+                if _plausible_tx(beacons.tx_power[i])
+                else {}
+            )
+            for i in range(len(beacons))
+        ],
+        "imu": imu_rows,
+    }
+
+
+def import_site(
+    site_dir: Path,
+    *,
+    site_id: str,
+    server: str,
+    key: str,
+    rooms_walkable: bool = False,
+    limit: int | None = None,
+    floors: list[str] | None = None,
+) -> ImportSummary:
+    """Create the site, upload its floors and upload each walk as a survey.
+
+    ``limit`` caps the walks per floor (for quick trials); ``floors`` picks floors by name.
+    """
+    headers = {"Authorization": f"Bearer {key}"}
+    walks = [(f, p) for f, p in site_walks(site_dir) if floors is None or f in floors]
+    floor_names = sorted({f for f, _ in walks} | set(floors or []))
+    if limit is not None:
+        walks = [w for name in floor_names for w in [x for x in walks if x[0] == name][:limit]]
+    samples = 0
+    with httpx.Client(base_url=server, headers=headers, timeout=300) as http, Progress() as bar:
+        http.put(f"/v1/sites/{site_id}", json={"name": site_id}).raise_for_status()
+        task = bar.add_task("floors", total=len(floor_names))
+        for name in floor_names:
+            floor = read_floor(site_dir / name, rooms_walkable=rooms_walkable)
+            http.put(f"/v1/sites/{site_id}/floors/{name}", json=floor.geojson).raise_for_status()
+            bar.advance(task)
+        task = bar.add_task("walks", total=len(walks))
+
+        def prepare(item: tuple[str, Path]) -> dict[str, Any]:
+            floor, path = item
+            return survey_body(read_walk(path, floor), device_id=f"ilc-{path.name.split('.')[0]}")
+
+        # reading and converting the next walk overlaps with uploading this one
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            for body in pool.map(prepare, walks):
+                r = http.post(f"/v1/sites/{site_id}/surveys", json=body)
+                if r.status_code != 201:
+                    raise RuntimeError(f"survey {body['name']} rejected: {r.status_code} {r.text}")
+                samples += sum(len(body[k]) for k in ("wifi", "ble", "imu"))
+                bar.advance(task)
+    return ImportSummary(floors=len(floor_names), surveys=len(walks), samples=samples)

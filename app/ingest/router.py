@@ -1,0 +1,136 @@
+"""Ingest: devices POST (or stream over a WebSocket) batches of measurements."""
+
+from __future__ import annotations
+
+import json
+from typing import Any, TypeVar
+
+from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ValidationError
+
+from app.core.deps import PrincipalDep, websocket_principal
+from app.core.errors import ApiError, error_body, validation_details
+from app.core.openapi import json_body
+from app.core.state import RuntimeDep, StateDep
+from app.ingest import service
+from app.ingest.schemas import IngestAccepted, IngestBatch, IngestProcessed, LocatorBatch
+
+router = APIRouter(prefix="/v1", tags=["ingest"])
+M = TypeVar("M", bound=BaseModel)
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise ApiError(413, f"body larger than {limit} bytes")
+    body = bytearray()
+    async for chunk in request.stream():
+        body.extend(chunk)
+        if len(body) > limit:
+            raise ApiError(413, f"body larger than {limit} bytes")
+    return bytes(body)
+
+
+def _parse(model: type[M], raw: bytes | str) -> M:
+    try:
+        return model.model_validate_json(raw)
+    except ValidationError as exc:
+        raise ApiError(
+            422,
+            "request failed validation",
+            details=validation_details(exc.errors(include_url=False)),
+        ) from exc
+
+
+def _answer(result: dict[str, Any], wait: bool) -> JSONResponse:
+    return JSONResponse(result, status_code=200 if wait else 202)
+
+
+@router.post(
+    "/ingest",
+    status_code=202,
+    response_model=IngestAccepted | IngestProcessed,
+    openapi_extra=json_body(IngestBatch),
+)
+async def ingest(
+    principal: PrincipalDep,
+    request: Request,
+    state: StateDep,
+    runtime: RuntimeDep,
+    wait: bool = Query(False, description="Answer after processing, with the positions"),
+) -> JSONResponse:
+    """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
+    raw = await _read_body(request, state.settings.max_body_bytes)
+    batch = _parse(IngestBatch, raw)
+    result = await service.ingest_batch(
+        batch=batch,
+        principal=principal,
+        settings=state.settings,
+        runtime=runtime,
+        sites=state.sites,
+        wait=wait,
+    )
+    state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
+    return _answer(result, wait)
+
+
+@router.post("/ingest/locator", status_code=202, response_model=IngestAccepted | IngestProcessed)
+async def ingest_locator(
+    principal: PrincipalDep,
+    request: Request,
+    state: StateDep,
+    runtime: RuntimeDep,
+    wait: bool = Query(False, description="Answer after processing, with the tags' positions"),
+) -> JSONResponse:
+    """Accept a locator's sightings of tags; each goes to its tag's filter."""
+    raw = await _read_body(request, state.settings.max_body_bytes)
+    batch = _parse(LocatorBatch, raw)
+    result = await service.ingest_locator(
+        batch=batch,
+        principal=principal,
+        settings=state.settings,
+        runtime=runtime,
+        sites=state.sites,
+        wait=wait,
+    )
+    state.metrics.ingest_samples.labels("locator").inc(len(batch.sightings))
+    return _answer(result, wait)
+
+
+@router.websocket("/ws/ingest")
+async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
+    """Ingest over a socket: each text message is an ingest body, each answer its result."""
+    principal = websocket_principal(websocket)
+    if principal is None:
+        await websocket.close(code=1008, reason="missing or unknown API key")
+        return
+    state = websocket.app.state.locus
+    if state.runtime is None:
+        await websocket.close(code=1011, reason="this node runs no filter workers")
+        return
+    await websocket.accept()
+    try:
+        while True:
+            raw = await websocket.receive_text()
+            if len(raw) > state.settings.max_body_bytes:
+                await websocket.send_json(error_body("payload_too_large", "message too large"))
+                continue
+            try:
+                batch = _parse(IngestBatch, raw)
+                result = await service.ingest_batch(
+                    batch=batch,
+                    principal=principal,
+                    settings=state.settings,
+                    runtime=state.runtime,
+                    sites=state.sites,
+                    wait=wait,
+                )
+                state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
+                await websocket.send_text(json.dumps(result))
+            except ApiError as exc:
+                await websocket.send_json(
+                    error_body(exc.code, exc.message, exc.details) | {"status": exc.status}
+                )
+    except WebSocketDisconnect:
+        return

@@ -1,0 +1,142 @@
+"""Ingest bodies: a device's batch of measurements and a locator's sightings.
+
+Validation is strict and complete: a batch with one bad sample is rejected
+whole (422 naming the sample), so nothing is half-accepted.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
+
+from app.core.schemas import DeviceIdentifier, Identifier
+from app.positions.schemas import Position
+
+# 2000-01-01 in ms: anything earlier is a device clock that was never set.
+MIN_T_MS = 946_684_800_000
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Rssi = Annotated[float, Field(ge=-150, le=20, allow_inf_nan=False)]
+Time = Annotated[StrictInt, Field(ge=MIN_T_MS, le=2**53)]
+TxId = Annotated[str, Field(min_length=1, max_length=100)]
+
+
+class _Sample(BaseModel):
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    t: Time
+
+
+class RadioSample(_Sample):
+    """One RSSI reading of a WiFi access point or BLE beacon."""
+
+    id: TxId
+    rssi: Rssi
+    freq: Annotated[int, Field(ge=0, le=100_000)] | None = None
+    tx_power: Annotated[float, Field(ge=-150, le=50, allow_inf_nan=False)] | None = None
+
+
+class ImuSample(_Sample):
+    """Inertial sample; any subset of the fields."""
+
+    acc: Annotated[list[Finite], Field(min_length=3, max_length=3)] | None = None
+    gyro: Annotated[list[Finite], Field(min_length=3, max_length=3)] | None = None
+    mag: Annotated[list[Finite], Field(min_length=3, max_length=3)] | None = None
+    rot: Annotated[list[Finite], Field(min_length=3, max_length=4)] | None = None
+
+    @model_validator(mode="after")
+    def _some_field(self) -> ImuSample:
+        if self.acc is None and self.gyro is None and self.mag is None and self.rot is None:
+            raise ValueError("an imu sample needs at least one of acc, gyro, mag, rot")
+        return self
+
+
+class UwbRange(_Sample):
+    """A two-way range (m) to a UWB anchor."""
+
+    anchor: TxId
+    range: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)]
+    std: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] | None = None
+
+
+class UwbFix(_Sample):
+    """A position fix computed elsewhere (e.g. by a UWB gateway)."""
+
+    x: Finite
+    y: Finite
+    z: Finite = 0.0
+    floor_id: Identifier | None = None
+    std: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] | None = None
+
+
+class BaroSample(_Sample):
+    """Barometric pressure (hPa)."""
+
+    hpa: Annotated[float, Field(gt=300, lt=1200, allow_inf_nan=False)]
+
+
+class IngestBatch(BaseModel):
+    """A device's batch: every list optional, at least one sample in total."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device_id: DeviceIdentifier
+    site_id: Identifier
+    wifi: list[RadioSample] = Field(default_factory=list)
+    ble: list[RadioSample] = Field(default_factory=list)
+    imu: list[ImuSample] = Field(default_factory=list)
+    uwb: list[UwbRange] = Field(default_factory=list)
+    uwb_fix: list[UwbFix] = Field(default_factory=list)
+    baro: list[BaroSample] = Field(default_factory=list)
+
+    @property
+    def sample_count(self) -> int:
+        """Return the number of samples of every kind."""
+        return sum(len(getattr(self, k)) for k in SAMPLE_KINDS)
+
+    @model_validator(mode="after")
+    def _not_empty(self) -> IngestBatch:
+        if self.sample_count == 0:
+            raise ValueError("at least one sample is required")
+        return self
+
+    def max_t(self) -> int:
+        """Return the latest sample time in the batch."""
+        return max(s.t for k in SAMPLE_KINDS for s in getattr(self, k))
+
+
+SAMPLE_KINDS = ("wifi", "ble", "imu", "uwb", "uwb_fix", "baro")
+
+
+class Sighting(BaseModel):
+    """A locator heard a tag."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    t: Time
+    tag_id: DeviceIdentifier
+    rssi: Rssi
+
+
+class LocatorBatch(BaseModel):
+    """A fixed receiver's sightings of tags."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    site_id: Identifier
+    locator_id: TxId
+    sightings: Annotated[list[Sighting], Field(min_length=1)]
+
+
+class IngestAccepted(BaseModel):
+    """Answer to an ingest: samples accepted and how many were too late to use."""
+
+    accepted: int
+    late: int
+
+
+class IngestProcessed(IngestAccepted):
+    """Answer to ``?wait=true``: every position emitted while processing the batch."""
+
+    positions: list[Position]

@@ -1,0 +1,116 @@
+"""The FastAPI application: routers, error handling, metrics, and the workers' lifecycle."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.core.config import Settings, get_settings
+from app.core.db import make_engine, make_sessionmaker
+from app.core.errors import install_error_handlers
+from app.core.metrics import Metrics
+from app.core.openapi import install_openapi
+from app.core.state import AppState
+from app.floors.router import router as floors_router
+from app.ingest.router import router as ingest_router
+from app.keys.router import router as keys_router
+from app.ops.router import router as ops_router
+from app.planning.router import router as planning_router
+from app.positions.router import router as positions_router
+from app.sites.cache import SiteVersions
+from app.sites.router import router as sites_router
+from app.surveys.router import router as surveys_router
+from app.tracks.router import router as tracks_router
+from app.tracks.service import TrackFitter
+from app.workers.runtime import Runtime
+
+WEB_DIR = Path(__file__).parent / "web"
+
+
+class RequestMetrics:
+    """Count requests and time them by route template (plain ASGI: cheap on the hot path)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        status = 500
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            state = getattr(scope["app"].state, "locus", None)
+            if state is not None:
+                path = getattr(scope.get("route"), "path", "unmatched")
+                state.metrics.requests.labels(scope["method"], path, str(status)).inc()
+                state.metrics.request_seconds.labels(path).observe(time.perf_counter() - started)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the app; the database schema must already be at head (``locus serve`` does it)."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        engine = make_engine(settings.resolved_database_url)
+        sessions = make_sessionmaker(engine)
+        metrics = Metrics()
+        runtime = None
+        if settings.worker_count > 0 or settings.broker != "memory":
+            runtime = Runtime(settings, metrics)
+            await runtime.start()
+        app.state.sessions = sessions
+        app.state.track_fitter = TrackFitter(settings, sessions)
+        app.state.track_fitter.start()
+        app.state.locus = AppState(
+            settings, engine, sessions, metrics, SiteVersions(sessions), runtime
+        )
+        try:
+            yield
+        finally:
+            app.state.track_fitter.stop()
+            if runtime is not None:
+                await runtime.stop()
+            engine.dispose()
+
+    app = FastAPI(
+        title="Locus",
+        version="1",
+        summary="Real-time indoor location engine for many tags.",
+        lifespan=lifespan,
+    )
+    install_error_handlers(app)
+    install_openapi(app)
+
+    app.add_middleware(RequestMetrics)
+    for router in (
+        ops_router,
+        keys_router,
+        sites_router,
+        floors_router,
+        ingest_router,
+        positions_router,
+        surveys_router,
+        tracks_router,
+        planning_router,
+    ):
+        app.include_router(router)
+    if WEB_DIR.is_dir():
+        app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
+    return app

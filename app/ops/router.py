@@ -1,0 +1,48 @@
+"""Operations: liveness, readiness and Prometheus metrics."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel
+from sqlalchemy import text
+
+from app.core.errors import ApiError
+from app.core.state import StateDep
+
+router = APIRouter(tags=["operations"])
+
+
+class Health(BaseModel):
+    """A health answer."""
+
+    status: str
+    database: bool | None = None
+    workers: bool | None = None
+
+
+@router.get("/healthz", response_model=Health)
+def healthz() -> Health:
+    """Answer while the process serves requests (no key needed)."""
+    return Health(status="ok")
+
+
+@router.get("/readyz", response_model=Health)
+def readyz(state: StateDep) -> Health:
+    """Answer 200 when the database answers and every worker is alive, else 503."""
+    try:
+        with state.engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+        database = True
+    except Exception:
+        database = False
+    workers = state.runtime.broker.healthy() if state.runtime is not None else True
+    if not (database and workers):
+        raise ApiError(503, "not ready", details=[{"database": database, "workers": workers}])
+    return Health(status="ready", database=database, workers=workers)
+
+
+@router.get("/metrics", response_class=Response)
+def metrics(state: StateDep) -> Response:
+    """Return Prometheus metrics of this API node and its workers."""
+    return Response(generate_latest(state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

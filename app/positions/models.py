@@ -1,0 +1,29 @@
+"""Positions the engine emitted, kept as history."""
+
+from __future__ import annotations
+
+from sqlalchemy import BigInteger, Float, Index, Integer, String
+from sqlalchemy.orm import Mapped, mapped_column
+
+from app.core.db import Base
+
+
+class Position(Base):
+    """One emitted position of a device at measurement time ``t`` (ms)."""
+
+    __tablename__ = "positions"
+    __table_args__ = (Index("ix_positions_device_t", "device_id", "t"),)
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    site_id: Mapped[str] = mapped_column(String(64))
+    device_id: Mapped[str] = mapped_column(String(128))
+    floor_id: Mapped[str | None] = mapped_column(String(64))
+    t: Mapped[int] = mapped_column(BigInteger)
+    x: Mapped[float] = mapped_column(Float)
+    y: Mapped[float] = mapped_column(Float)
+    z: Mapped[float] = mapped_column(Float)
+    heading: Mapped[float | None] = mapped_column(Float)
+    accuracy: Mapped[float] = mapped_column(Float)
+    speed: Mapped[float | None] = mapped_column(Float)
+    method: Mapped[str] = mapped_column(String(16))
+    computed_at: Mapped[int] = mapped_column(BigInteger)

@@ -1,0 +1,32 @@
+"""Reading stored positions."""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.positions.models import Position
+
+
+def latest(*, db: Session, device_id: str) -> Position | None:
+    """Return the device's position with the greatest measurement time."""
+    query = select(Position).where(Position.device_id == device_id)
+    return db.scalar(query.order_by(Position.t.desc(), Position.id.desc()).limit(1))
+
+
+def history(
+    *, db: Session, device_id: str, t_from: int | None, t_to: int | None, limit: int
+) -> list[Position]:
+    """Return up to ``limit`` positions with ``t_from <= t <= t_to``, ascending t."""
+    query = select(Position).where(Position.device_id == device_id)
+    if t_from is not None:
+        query = query.where(Position.t >= t_from)
+    if t_to is not None:
+        query = query.where(Position.t <= t_to)
+    return list(db.scalars(query.order_by(Position.t, Position.id).limit(limit)))
+
+
+def device_site(*, db: Session, device_id: str) -> str | None:
+    """Return the site the device last reported a position in."""
+    pos = latest(db=db, device_id=device_id)
+    return None if pos is None else pos.site_id

@@ -1,0 +1,55 @@
+"""Sites: create, read, list, delete."""
+
+from __future__ import annotations
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from app.devices.models import DeviceState
+from app.positions.models import Position
+from app.sites.models import Site
+from app.sites.schemas import SiteUpsert
+
+
+def get_site(*, db: Session, site_id: str) -> Site | None:
+    """Return the site or None."""
+    return db.get(Site, site_id)
+
+
+def upsert_site(*, db: Session, site_id: str, body: SiteUpsert) -> tuple[Site, bool]:
+    """Create the site or update its name/config; return it and whether it was created."""
+    site = db.get(Site, site_id)
+    created = site is None
+    if site is None:
+        site = Site(id=site_id, name=body.name, config={}, map_version=0)
+        db.add(site)
+    site.name = body.name
+    if body.config is not None:
+        site.config = body.config.model_dump()
+        site.map_version = (site.map_version or 0) + 1
+    db.flush()
+    return site, created
+
+
+def list_sites(*, db: Session, only: str | None, limit: int, offset: int) -> tuple[list[Site], int]:
+    """Return a page of sites (only one when the caller is scoped to it) and the total."""
+    query = select(Site)
+    if only is not None:
+        query = query.where(Site.id == only)
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db.scalars(query.order_by(Site.id).limit(limit).offset(offset)).all()
+    return list(rows), total
+
+
+def delete_site(*, db: Session, site: Site) -> None:
+    """Delete the site with its floors, surveys, positions and device states."""
+    db.execute(delete(Position).where(Position.site_id == site.id))
+    db.execute(delete(DeviceState).where(DeviceState.site_id == site.id))
+    db.delete(site)
+    db.flush()
+
+
+def bump_map_version(*, db: Session, site: Site) -> None:
+    """Mark the site's engine inputs as changed so workers rebuild their view."""
+    site.map_version = (site.map_version or 0) + 1
+    db.flush()

@@ -1,0 +1,146 @@
+// Accuracy planning overlay: the standard deviation a least-squares fix would have at
+// each cell of the floor (API.md, "Planning"), drawn as a heatmap under the plan.
+
+import { ApiError } from "./api.js";
+
+// Small σ green, large σ red (RGB stops, evenly spaced from 0 to the scale's top).
+const RAMP = [
+  [26, 152, 80],
+  [145, 207, 96],
+  [254, 224, 139],
+  [252, 141, 89],
+  [215, 48, 39],
+];
+const ALPHA = 165;
+const UNOBSERVABLE = [71, 85, 105, 110];
+
+export class AccuracyOverlay {
+  constructor(api, plan, els) {
+    this.api = api;
+    this.plan = plan;
+    this.els = els;
+    this.siteId = null;
+    this.floorId = null;
+    this.request = 0;
+    for (const input of [els.toggle, els.tech, els.z, els.cell]) {
+      input.addEventListener("change", () => this.refresh());
+    }
+    const stops = RAMP.map((c) => `rgb(${c})`).join(",");
+    els.legend.style.background = `linear-gradient(to right, ${stops})`;
+  }
+
+  setFloor(siteId, floorId) {
+    this.siteId = siteId;
+    this.floorId = floorId;
+    this.refresh();
+  }
+
+  async refresh() {
+    const request = ++this.request;
+    this.plan.clear("heatmap");
+    this.els.scale.hidden = true;
+    this.els.options.hidden = !this.els.toggle.checked;
+    if (!this.els.toggle.checked || !this.floorId) {
+      this.#status("", "off");
+      return;
+    }
+    const params = {
+      tech: this.els.tech.value,
+      z: Number(this.els.z.value),
+      cell: Number(this.els.cell.value),
+    };
+    this.#status("Loading…", "loading");
+    try {
+      const grid = await this.api.accuracy(this.siteId, this.floorId, params);
+      if (request === this.request) this.#render(grid, params);
+    } catch (error) {
+      if (request !== this.request) return;
+      if (error instanceof ApiError && error.status === 404) {
+        this.#status(
+          `Accuracy map not available on this server (404: ${error.message}).`,
+          "unavailable",
+        );
+      } else {
+        this.#status(`Accuracy map failed: ${error.message}`, "error");
+      }
+    }
+  }
+
+  #render(grid, params) {
+    const field = horizontalSigma(grid);
+    const finite = field.values.filter(Number.isFinite).sort((a, b) => a - b);
+    // top of the scale: the 95th percentile rounded up to 0.5 m, so a few edge cells
+    // with huge σ do not wash out the rest
+    const top = finite.length
+      ? Math.max(0.5, Math.ceil(2 * finite[Math.floor(0.95 * (finite.length - 1))]) / 2)
+      : 1;
+    const canvas = document.createElement("canvas");
+    canvas.width = field.nx;
+    canvas.height = field.ny;
+    const context = canvas.getContext("2d");
+    const image = context.createImageData(field.nx, field.ny);
+    field.values.forEach((sigma, i) => {
+      const rgba = Number.isFinite(sigma) ? [...rampColour(sigma / top), ALPHA] : UNOBSERVABLE;
+      image.data.set(rgba, 4 * i);
+    });
+    context.putImageData(image, 0, 0);
+    // canvas row 0 is grid row 0 (at y0); the plan's flipped y puts it at the bottom
+    const node = this.plan.showImage("heatmap", {
+      href: canvas.toDataURL(),
+      x: grid.origin[0],
+      y: grid.origin[1],
+      width: field.nx * grid.cell,
+      height: field.ny * grid.cell,
+    });
+    node.dataset.shape = `${field.ny}x${field.nx}`;
+    const unobservable = field.values.length - finite.length;
+    const median = finite.length ? finite[Math.floor(finite.length / 2)] : null;
+    this.#status(
+      `${params.tech === "uwb" ? "UWB anchors" : "Transmitters"} at z = ${params.z} m: median σ ` +
+        `${median === null ? "–" : `${median.toFixed(2)} m`}` +
+        (unobservable ? `, ${unobservable} cells unobservable` : ""),
+      "shown",
+    );
+    this.els.scaleTop.textContent = `≥ ${top} m`;
+    this.els.scale.hidden = false;
+  }
+
+  #status(text, state) {
+    this.els.status.textContent = text;
+    this.els.status.dataset.state = state;
+  }
+}
+
+/**
+ * Return {ny, nx, values}: the horizontal σ = √(σx² + σy²) (m) of each cell, row by row
+ * from y0 up, NaN where the position is unobservable (null in either array).
+ */
+function horizontalSigma(grid) {
+  const [ny, nx] = grid?.shape ?? [];
+  const rowsOk = (rows) =>
+    Array.isArray(rows) &&
+    rows.length === ny &&
+    rows.every((r) => Array.isArray(r) && r.length === nx);
+  if (!(ny > 0 && nx > 0 && grid.cell > 0 && rowsOk(grid.sigma_x) && rowsOk(grid.sigma_y))) {
+    throw new Error("the answer does not match the contract (shape, cell, sigma_x, sigma_y)");
+  }
+  const values = new Float64Array(ny * nx);
+  for (let r = 0; r < ny; r++) {
+    for (let c = 0; c < nx; c++) {
+      const sx = grid.sigma_x[r][c];
+      const sy = grid.sigma_y[r][c];
+      // σ = √(σx² + σy²)
+      values[r * nx + c] = sx === null || sy === null ? NaN : Math.hypot(sx, sy);
+    }
+  }
+  return { ny, nx, values };
+}
+
+/** Return the RGB of `u` in [0, 1] on the ramp (clamped), interpolated between stops. */
+function rampColour(u) {
+  const s = Math.min(1, Math.max(0, u)) * (RAMP.length - 1);
+  const i = Math.min(RAMP.length - 2, Math.floor(s));
+  const f = s - i;
+  // c = (1 − f)·c_i + f·c_{i+1}
+  return RAMP[i].map((a, k) => Math.round((1 - f) * a + f * RAMP[i + 1][k]));
+}

@@ -1,0 +1,198 @@
+"""The broker between API and workers: publish a batch to a shard, receive results.
+
+``MemoryBroker`` is the embedded default: worker processes on this machine
+fed through multiprocessing queues. Like a stream with consumer groups, it
+keeps every published batch until the worker acknowledges it; when a worker
+dies, a supervisor starts a new one on fresh queues and re-delivers every
+unacknowledged batch in order. The new worker resumes its devices from their
+stored snapshots, and re-delivered samples it has already used are counted
+as late, not used twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from app.core.config import Settings
+from app.workers.process import STOP, worker_main
+
+log = logging.getLogger(__name__)
+
+Message = dict[str, Any]
+ResultHandler = Callable[[list[Message]], None]
+
+
+class Broker(Protocol):
+    """What the API needs from a broker."""
+
+    shards: int
+
+    def start(self, on_results: ResultHandler) -> None:
+        """Start delivering; ``on_results`` is called from a background thread."""
+        ...
+
+    def publish(self, shard: int, message: Message) -> None:
+        """Queue a batch for the shard's worker."""
+        ...
+
+    def backlog(self, shard: int) -> int:
+        """Return the shard's published, unacknowledged batches."""
+        ...
+
+    def healthy(self) -> bool:
+        """Return whether every shard has a live consumer."""
+        ...
+
+    def stop(self) -> None:
+        """Stop workers (they snapshot their devices) and delivery."""
+        ...
+
+
+class _Slot:
+    """One shard's worker process, its queues and its unacknowledged batches."""
+
+    def __init__(self, shard: int) -> None:
+        self.shard = shard
+        self.process: Any = None
+        self.inbox: Any = None
+        self.outbox: Any = None
+        self.reader: threading.Thread | None = None
+        self.pending: OrderedDict[str, Message] = OrderedDict()
+        self.restarts = 0
+        self.ready = threading.Event()
+
+
+class MemoryBroker:
+    """Worker processes on this machine, supervised, with at-least-once delivery."""
+
+    def __init__(self, settings: Settings, shards: int) -> None:
+        if shards < 1:
+            raise ValueError("the memory broker needs at least one worker")
+        self.settings = settings
+        self.shards = shards
+        self._ctx = mp.get_context("spawn")
+        self._slots = [_Slot(i) for i in range(shards)]
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._on_results: ResultHandler = lambda _: None
+        self._supervisor: threading.Thread | None = None
+        self.on_restart: Callable[[int], None] = lambda _: None
+
+    # -- lifecycle -------------------------------------------------------------------
+
+    def start(self, on_results: ResultHandler) -> None:
+        """Start one worker per shard and the supervisor."""
+        self._on_results = on_results
+        for slot in self._slots:
+            self._spawn(slot)
+        for slot in self._slots:
+            slot.ready.wait(timeout=120)
+        self._supervisor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
+        self._supervisor.start()
+
+    def _spawn(self, slot: _Slot) -> None:
+        # Under the lock, so a publish cannot land in the old inbox or be re-sent twice.
+        with self._lock:
+            slot.ready.clear()
+            slot.inbox = self._ctx.Queue()
+            slot.outbox = self._ctx.Queue()
+            slot.process = self._ctx.Process(
+                target=worker_main,
+                args=(slot.shard, self.settings.model_dump_json(), slot.inbox, slot.outbox),
+                name=f"locus-worker-{slot.shard}",
+                daemon=True,
+            )
+            slot.process.start()
+            for message in slot.pending.values():
+                slot.inbox.put(message)
+        slot.reader = threading.Thread(
+            target=self._read,
+            args=(slot, slot.outbox, slot.process),
+            daemon=True,
+            name=f"results-{slot.shard}",
+        )
+        slot.reader.start()
+
+    def _read(self, slot: _Slot, outbox: Any, process: Any) -> None:
+        # until the worker has exited and everything it said is read
+        while True:
+            try:
+                results = outbox.get(timeout=0.2)
+            except queue.Empty:
+                if not process.is_alive() and outbox.empty():
+                    return
+                continue
+            except (EOFError, OSError):
+                return
+            with self._lock:
+                for result in results:
+                    if result.get("type") == "done":
+                        slot.pending.pop(result["batch_id"], None)
+            if any(r.get("type") == "ready" for r in results):
+                slot.ready.set()
+            self._on_results(results)
+
+    def _supervise(self) -> None:
+        while not self._stopping.wait(0.2):
+            for slot in self._slots:
+                if slot.process is not None and not slot.process.is_alive():
+                    if self._stopping.is_set():
+                        return
+                    log.warning(
+                        "worker %d died (exit %s); restarting with %d pending batches",
+                        slot.shard,
+                        slot.process.exitcode,
+                        len(slot.pending),
+                    )
+                    if slot.reader is not None:
+                        slot.reader.join(timeout=5)
+                    slot.restarts += 1
+                    self.on_restart(slot.shard)
+                    self._spawn(slot)
+
+    def stop(self) -> None:
+        """Ask workers to snapshot and exit; wait for them and for what they said last."""
+        self._stopping.set()
+        for slot in self._slots:
+            if slot.process is not None and slot.process.is_alive():
+                slot.inbox.put(STOP)
+        for slot in self._slots:
+            if slot.process is None:
+                continue
+            slot.process.join(timeout=30)
+            if slot.process.is_alive():
+                log.warning("worker %d did not stop in time; killing it", slot.shard)
+                slot.process.kill()
+                slot.process.join(timeout=5)
+            elif slot.reader is not None:
+                # a killed worker may have left half a message: its reader is abandoned
+                slot.reader.join(timeout=5)
+
+    # -- traffic ---------------------------------------------------------------------
+
+    def publish(self, shard: int, message: Message) -> None:
+        """Record the batch as pending and hand it to the shard's worker."""
+        slot = self._slots[shard]
+        with self._lock:
+            slot.pending[message["batch_id"]] = message
+            slot.inbox.put(message)
+
+    def backlog(self, shard: int) -> int:
+        """Return the shard's unacknowledged batches."""
+        return len(self._slots[shard].pending)
+
+    def healthy(self) -> bool:
+        """Return whether every worker process is alive and has said it is ready."""
+        return all(
+            s.process is not None and s.process.is_alive() and s.ready.is_set() for s in self._slots
+        )
+
+    def worker_pids(self) -> list[int]:
+        """Return the worker processes' pids (operators and tests kill them by pid)."""
+        return [s.process.pid for s in self._slots]

@@ -1,0 +1,121 @@
+"""Turn validated JSON samples into the engine's arrays, mapping ids to table rows."""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+import numpy as np
+
+from app.engine.samples import Batch, Fixes, ImuSamples, Pressure, Ranges, RssiReadings
+from app.workers.sites import LoadedSite
+
+_NAN3 = (np.nan, np.nan, np.nan)
+_A = TypeVar("_A")
+
+
+def _radio_id(kind: str, raw: str) -> str:
+    # MAC addresses are case-insensitive; iBeacon ids are UUID_major_minor as given.
+    return raw.lower() if kind == "wifi" or ":" in raw else raw
+
+
+def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tuple[Batch, int]:
+    """Return the engine batch (sorted by t within each kind) and the count of unknown ids."""
+    unknown = 0
+    t_rssi: list[int] = []
+    tx: list[int] = []
+    rssi: list[float] = []
+    for kind in ("wifi", "ble"):
+        for s in samples.get(kind, ()):
+            row = site.transmitter_index.get(_radio_id(kind, s["id"]))
+            if row is None:
+                unknown += 1
+                continue
+            t_rssi.append(s["t"])
+            tx.append(row)
+            rssi.append(s["rssi"])
+    for s in samples.get("sightings", ()):
+        row = site.locator_index.get(s["locator_id"])
+        if row is None:
+            unknown += 1
+            continue
+        t_rssi.append(s["t"])
+        tx.append(row)
+        rssi.append(s["rssi"])
+    imu = samples.get("imu", ())
+    ranges_t: list[int] = []
+    anchor: list[int] = []
+    dist: list[float] = []
+    std: list[float] = []
+    for s in samples.get("uwb", ()):
+        row = site.anchor_index.get(s["anchor"])
+        if row is None:
+            unknown += 1
+            continue
+        ranges_t.append(s["t"])
+        anchor.append(row)
+        dist.append(s["range"])
+        std.append(s.get("std") or np.nan)
+    fixes = [
+        s
+        for s in samples.get("uwb_fix", ())
+        if s.get("floor_id") is None or s["floor_id"] in site.floor_index
+    ]
+    unknown += len(samples.get("uwb_fix", ())) - len(fixes)
+    baro = samples.get("baro", ())
+    batch = Batch(
+        rssi=_sorted(
+            RssiReadings(np.array(t_rssi, np.int64), np.array(tx, np.int32), np.array(rssi, float))
+        ),
+        imu=_sorted(
+            ImuSamples(
+                np.array([s["t"] for s in imu], np.int64),
+                np.array([s.get("acc") or _NAN3 for s in imu], float).reshape(-1, 3),
+                np.array([s.get("gyro") or _NAN3 for s in imu], float).reshape(-1, 3),
+                np.array([s.get("mag") or _NAN3 for s in imu], float).reshape(-1, 3),
+                np.array([_rot4(s.get("rot")) for s in imu], float).reshape(-1, 4),
+            )
+        ),
+        ranges=_sorted(
+            Ranges(
+                np.array(ranges_t, np.int64),
+                np.array(anchor, np.int32),
+                np.array(dist, float),
+                np.array(std, float),
+            )
+        ),
+        fixes=_sorted(
+            Fixes(
+                np.array([s["t"] for s in fixes], np.int64),
+                np.array([[s["x"], s["y"], s.get("z", 0.0)] for s in fixes], float).reshape(-1, 3),
+                np.array(
+                    [site.floor_index.get(s.get("floor_id") or "", 0) for s in fixes], np.int32
+                ),
+                np.array([s.get("std") or 1.0 for s in fixes], float),
+            )
+        ),
+        pressure=_sorted(
+            Pressure(
+                np.array([s["t"] for s in baro], np.int64),
+                np.array([s["hpa"] for s in baro], float),
+            )
+        ),
+    )
+    return batch, unknown
+
+
+def _rot4(rot: list[float] | None) -> tuple[float, ...]:
+    if rot is None:
+        return (np.nan,) * 4
+    if len(rot) == 4:
+        return tuple(rot)
+    # w of a unit quaternion from its vector part (Android omits it on old devices)
+    w = float(np.sqrt(max(0.0, 1.0 - sum(v * v for v in rot))))
+    return (*rot, w)
+
+
+def _sorted(arrays: _A) -> _A:
+    order = np.argsort(arrays.t, kind="stable")  # type: ignore[attr-defined]
+    if np.all(order == np.arange(order.size)):
+        return arrays
+    fields = {k: v[order] for k, v in vars(arrays).items()}
+    return type(arrays)(**fields)

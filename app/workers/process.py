@@ -1,0 +1,92 @@
+"""The filter worker process: drain its inbox, process, report results and stats."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import time
+from typing import Any
+
+from app.core.config import Settings
+from app.core.db import make_engine, make_sessionmaker
+from app.core.logging import configure_logging
+from app.workers.shard import Shard
+
+log = logging.getLogger(__name__)
+
+STOP = {"type": "stop"}
+MAX_DRAIN = 500
+STATS_EVERY_S = 1.0
+
+
+def _drain(inbox: Any, timeout: float) -> list[dict[str, Any]]:
+    try:
+        messages = [inbox.get(timeout=timeout)]
+    except queue.Empty:
+        return []
+    while len(messages) < MAX_DRAIN:
+        try:
+            messages.append(inbox.get_nowait())
+        except queue.Empty:
+            break
+    return messages
+
+
+def handle_safely(shard: Shard, messages: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Process a drained group; if it fails, retry one by one so one bad batch fails alone."""
+    try:
+        return shard.handle(messages)
+    except Exception:
+        log.exception("shard %d: group of %d failed, retrying singly", shard.shard, len(messages))
+    results = []
+    for msg in messages:
+        try:
+            results.extend(shard.handle([msg]))
+        except Exception as exc:
+            log.exception("shard %d: batch %s failed", shard.shard, msg.get("batch_id"))
+            shard.counters["failed_batches"] += 1
+            results.append(
+                {
+                    "type": "done",
+                    "batch_id": msg["batch_id"],
+                    "device_id": msg["device_id"],
+                    "error": str(exc),
+                }
+            )
+    return results
+
+
+def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> None:
+    """Run one shard until a stop message (SIGTERM also stops it cleanly)."""
+    settings = Settings.model_validate_json(settings_json)
+    configure_logging()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    stopping = False
+
+    def _terminate(*_: Any) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGTERM, _terminate)
+    engine = make_engine(settings.resolved_database_url)
+    shard = Shard(shard=shard_id, settings=settings, sessions=make_sessionmaker(engine))
+    outbox.put([{"type": "ready", "shard": shard_id}])
+    last_stats = 0.0
+    while not stopping:
+        messages = _drain(inbox, timeout=0.05)
+        if any(m.get("type") == "stop" for m in messages):
+            stopping = True
+            messages = [m for m in messages if m.get("type") != "stop"]
+        if messages:
+            outbox.put(handle_safely(shard, messages))
+        emitted = shard.tick()
+        if emitted:
+            outbox.put(emitted)
+        if time.monotonic() - last_stats >= STATS_EVERY_S:
+            outbox.put([shard.stats()])
+            last_stats = time.monotonic()
+    shard.settings = shard.settings.model_copy(update={"idle_evict_s": 0.0, "flush_after_s": 0.0})
+    # flush every buffer, then snapshot and evict everything
+    outbox.put(shard.tick() + shard.tick() + [shard.stats()])
+    engine.dispose()

@@ -1,0 +1,337 @@
+"""Redis Streams between stateless API nodes and filter-worker nodes.
+
+- One stream per shard (``locus:shard:<n>``); API nodes ``XADD`` batches
+  (``MAXLEN ~`` bounded) and workers read them with the consumer group
+  ``workers``, acknowledging (``XACK``) only after the positions are stored.
+- A shard is owned by one worker at a time through a lease
+  (``SET locus:lease:<n> <worker> NX PX``), renewed while the worker lives. A
+  worker takes at most its fair share (shards / live workers); shards of a
+  worker that stops renewing are taken by the others, which first re-process
+  the entries the dead consumer left pending (``XAUTOCLAIM``), resuming each
+  device from its snapshot in Redis.
+- Results (acknowledgements with positions, zone events) go to every API node
+  through the pub/sub channel ``locus:results``; each node resolves its own
+  ``?wait=true`` requests and feeds its WebSocket subscribers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+import uuid
+from collections import deque
+from typing import Any
+
+import redis
+
+from app.core.config import Settings
+from app.core.db import make_engine, make_sessionmaker
+from app.workers.process import handle_safely
+from app.workers.shard import Shard
+from app.workers.snapshot_store import RedisSnapshots
+from app.workers.trackers import SiteEngines
+
+log = logging.getLogger(__name__)
+
+GROUP = "workers"
+RESULTS = "locus:results"
+Message = dict[str, Any]
+
+
+def stream_key(shard: int) -> str:
+    """Return the stream of a shard."""
+    return f"locus:shard:{shard}"
+
+
+def lease_key(shard: int) -> str:
+    """Return the lease key of a shard."""
+    return f"locus:lease:{shard}"
+
+
+# Renew only a lease we still hold: compare-and-pexpire.
+_RENEW = """
+if redis.call('get', KEYS[1]) == ARGV[1] then
+  return redis.call('pexpire', KEYS[1], ARGV[2])
+end
+return 0
+"""
+_RELEASE = """
+if redis.call('get', KEYS[1]) == ARGV[1] then
+  return redis.call('del', KEYS[1])
+end
+return 0
+"""
+
+
+class RedisBroker:
+    """The API node's side: publish batches to shard streams, receive results by pub/sub."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.shards = settings.shards
+        self.client = redis.Redis.from_url(settings.broker)
+        self._outgoing: deque[tuple[int, bytes]] = deque()
+        self._wake = threading.Event()
+        self._stopping = threading.Event()
+        self._backlog = [0] * self.shards
+        self._owned = [False] * self.shards
+        self._threads: list[threading.Thread] = []
+
+    def start(self, on_results: Any) -> None:
+        """Start the publisher and the results listener."""
+        for shard in range(self.shards):
+            self._ensure_group(shard)
+        self._on_results = on_results
+        for target, name in (
+            (self._publish_loop, "redis-publish"),
+            (self._listen, "redis-results"),
+            (self._watch, "redis-backlog"),
+        ):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def _ensure_group(self, shard: int) -> None:
+        try:
+            self.client.xgroup_create(stream_key(shard), GROUP, id="0", mkstream=True)
+        except redis.ResponseError as exc:
+            if "BUSYGROUP" not in str(exc):
+                raise
+
+    def publish(self, shard: int, message: Message) -> None:
+        """Queue the batch for the publisher thread (pipelined XADDs, off the event loop)."""
+        self._outgoing.append((shard, json.dumps(message, separators=(",", ":")).encode()))
+        self._backlog[shard] += 1
+        self._wake.set()
+
+    def _publish_loop(self) -> None:
+        while not self._stopping.is_set():
+            self._wake.wait(0.1)
+            self._wake.clear()
+            while self._outgoing:
+                pipe = self.client.pipeline(transaction=False)
+                for _ in range(min(len(self._outgoing), 500)):
+                    shard, data = self._outgoing.popleft()
+                    pipe.xadd(
+                        stream_key(shard),
+                        {"m": data},
+                        maxlen=self.settings.stream_maxlen,
+                        approximate=True,
+                    )
+                try:
+                    pipe.execute()
+                except redis.RedisError:
+                    log.exception("publishing to Redis failed")
+
+    def _listen(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                pubsub = self.client.pubsub(ignore_subscribe_messages=True)
+                pubsub.subscribe(RESULTS)
+                while not self._stopping.is_set():
+                    item = pubsub.get_message(timeout=0.2)
+                    if item is not None:
+                        self._on_results(json.loads(item["data"]))
+            except redis.RedisError:
+                log.exception("results subscription failed; resubscribing")
+                time.sleep(0.5)
+
+    def _watch(self) -> None:
+        # Backlog = entries not yet delivered (lag) + delivered and not acknowledged.
+        while not self._stopping.wait(0.5):
+            try:
+                for shard in range(self.shards):
+                    groups = self.client.xinfo_groups(stream_key(shard))
+                    info = next((g for g in groups if g["name"] in (GROUP, GROUP.encode())), None)
+                    if info is not None:
+                        self._backlog[shard] = int(info.get("lag") or 0) + int(info["pending"])
+                    self._owned[shard] = bool(self.client.exists(lease_key(shard)))
+            except redis.RedisError:
+                log.exception("reading stream backlog failed")
+
+    def backlog(self, shard: int) -> int:
+        """Return the shard's undelivered plus unacknowledged entries (refreshed twice a second)."""
+        return self._backlog[shard]
+
+    def healthy(self) -> bool:
+        """Return whether Redis answers and every shard has an owner."""
+        try:
+            self.client.ping()
+        except redis.RedisError:
+            return False
+        return all(self._owned)
+
+    def stop(self) -> None:
+        """Flush what is queued and stop the threads."""
+        deadline = time.monotonic() + 5
+        while self._outgoing and time.monotonic() < deadline:
+            time.sleep(0.05)
+        self._stopping.set()
+        for thread in self._threads:
+            thread.join(timeout=2)
+
+
+class LocalRedisWorkers:
+    """Worker processes on this node for the Redis broker (``serve --workers N --broker redis``)."""
+
+    def __init__(self, settings: Settings, count: int) -> None:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self.processes = [
+            ctx.Process(
+                target=redis_worker_main,
+                args=(settings.model_dump_json(),),
+                name=f"locus-redis-worker-{i}",
+                daemon=True,
+            )
+            for i in range(count)
+        ]
+
+    def start(self) -> None:
+        """Start the processes."""
+        for process in self.processes:
+            process.start()
+
+    def stop(self) -> None:
+        """Ask the processes to hand their shards back and wait for them."""
+        for process in self.processes:
+            if process.is_alive():
+                process.terminate()
+        for process in self.processes:
+            process.join(timeout=15)
+
+
+class RedisWorker:
+    """A worker node's loop: hold leases on a fair share of shards and process their streams."""
+
+    def __init__(self, settings: Settings, *, name: str | None = None) -> None:
+        self.settings = settings
+        self.name = name or f"worker-{uuid.uuid4().hex[:8]}"
+        self.client = redis.Redis.from_url(settings.broker)
+        self.engine = make_engine(settings.resolved_database_url)
+        self.sessions = make_sessionmaker(engine=self.engine)
+        self.snapshots = RedisSnapshots(self.client)
+        self.shards: dict[int, Shard] = {}
+        self.engines: dict[str, SiteEngines] = {}
+        self.lease_ms = int(settings.lease_s * 1000)
+        self._renew = self.client.register_script(_RENEW)
+        self._release = self.client.register_script(_RELEASE)
+        self._last_lease = 0.0
+        self._last_stats = 0.0
+
+    # -- leases ------------------------------------------------------------------------
+
+    def _live_workers(self) -> int:
+        self.client.set(f"locus:worker:{self.name}", 1, px=self.lease_ms)
+        return max(1, sum(1 for _ in self.client.scan_iter("locus:worker:*", count=1000)))
+
+    def _manage_leases(self) -> None:
+        for shard in list(self.shards):
+            if not self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms]):
+                log.warning("%s lost shard %d", self.name, shard)
+                del self.shards[shard]
+        fair = math.ceil(self.settings.shards / self._live_workers())
+        for shard in range(self.settings.shards):
+            if len(self.shards) >= fair:
+                break
+            if shard in self.shards:
+                continue
+            if self.client.set(lease_key(shard), self.name, nx=True, px=self.lease_ms):
+                self._take(shard)
+        # give back what is over the fair share so a newcomer gets work
+        while len(self.shards) > fair:
+            shard = max(self.shards)
+            self._flush(self.shards.pop(shard))
+            self._release(keys=[lease_key(shard)], args=[self.name])
+
+    def _take(self, shard: int) -> None:
+        try:
+            self.client.xgroup_create(stream_key(shard), GROUP, id="0", mkstream=True)
+        except redis.ResponseError as exc:
+            if "BUSYGROUP" not in str(exc):
+                raise
+        self.shards[shard] = Shard(
+            shard=shard,
+            settings=self.settings,
+            sessions=self.sessions,
+            snapshots=self.snapshots,
+            engines=self.engines,
+        )
+        # entries a previous owner read but never acknowledged are ours now, oldest first
+        claimed = 0
+        cursor = "0-0"
+        while True:
+            cursor, entries, _ = self.client.xautoclaim(
+                stream_key(shard), GROUP, self.name, min_idle_time=0, start_id=cursor, count=500
+            )
+            if entries:
+                claimed += len(entries)
+                self._process(shard, entries)
+            if cursor in (b"0-0", "0-0") or not entries:
+                break
+        log.info("%s took shard %d (%d pending entries re-processed)", self.name, shard, claimed)
+
+    # -- processing ------------------------------------------------------------------
+
+    def _process(self, shard: int, entries: list[Any]) -> None:
+        messages = [json.loads(fields[b"m"]) for _, fields in entries if fields]
+        results = handle_safely(self.shards[shard], messages) if messages else []
+        pipe = self.client.pipeline(transaction=False)
+        if results:
+            pipe.publish(RESULTS, json.dumps(results, separators=(",", ":")))
+        pipe.xack(stream_key(shard), GROUP, *[entry_id for entry_id, _ in entries])
+        pipe.execute()
+
+    def _flush(self, shard: Shard) -> None:
+        shard.settings = shard.settings.model_copy(
+            update={"idle_evict_s": 0.0, "flush_after_s": 0.0}
+        )
+        results = shard.tick() + shard.tick()
+        if results:
+            self.client.publish(RESULTS, json.dumps(results, separators=(",", ":")))
+
+    def run(self, stop: threading.Event) -> None:
+        """Process until ``stop`` is set, then flush and hand the shards back."""
+        log.info("%s started", self.name)
+        while not stop.is_set():
+            if time.monotonic() - self._last_lease >= self.settings.lease_s / 3:
+                self._manage_leases()
+                self._last_lease = time.monotonic()
+            if not self.shards:
+                stop.wait(0.2)
+                continue
+            streams = {stream_key(s): ">" for s in self.shards}
+            response = self.client.xreadgroup(GROUP, self.name, streams, count=500, block=50)
+            for key, entries in response or ():
+                shard = int((key.decode() if isinstance(key, bytes) else key).rsplit(":", 1)[1])
+                if shard in self.shards:
+                    self._process(shard, entries)
+            emitted = [m for shard in self.shards.values() for m in shard.tick()]
+            if time.monotonic() - self._last_stats >= 1.0:
+                emitted += [shard.stats() for shard in self.shards.values()]
+                self._last_stats = time.monotonic()
+            if emitted:
+                self.client.publish(RESULTS, json.dumps(emitted, separators=(",", ":")))
+        for shard_id in list(self.shards):
+            self._flush(self.shards.pop(shard_id))
+            self._release(keys=[lease_key(shard_id)], args=[self.name])
+        self.client.delete(f"locus:worker:{self.name}")
+        self.engine.dispose()
+
+
+def redis_worker_main(settings_json: str) -> None:
+    """Entry point of a worker process on the Redis broker (SIGTERM stops it cleanly)."""
+    import signal
+
+    from app.core.logging import configure_logging
+
+    configure_logging()
+    settings = Settings.model_validate_json(settings_json)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    RedisWorker(settings).run(stop)

@@ -1,0 +1,232 @@
+"""The API side of the workers: submit batches, await results, fan positions out."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import time
+import uuid
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+from app.core.config import Settings
+from app.core.errors import ApiError
+from app.core.metrics import Metrics
+from app.positions.hub import PositionHub
+from app.workers.broker import Broker, MemoryBroker
+from app.workers.redis_broker import LocalRedisWorkers, RedisBroker
+from app.workers.shards import shard_of
+
+log = logging.getLogger(__name__)
+
+Message = dict[str, Any]
+
+
+@dataclass
+class Outcome:
+    """What the workers did with one batch."""
+
+    accepted: int
+    late: int
+    positions: list[Message]
+    error: str | None = None
+    status: int = 500
+
+
+class Runtime:
+    """Owns the broker; routes batches by device, resolves waits, feeds the hub."""
+
+    def __init__(self, settings: Settings, metrics: Metrics, broker: Broker | None = None) -> None:
+        self.settings = settings
+        self.metrics = metrics
+        self.local_workers: LocalRedisWorkers | None = None
+        if broker is not None:
+            self.broker = broker
+        elif settings.broker == "memory":
+            self.broker = MemoryBroker(settings, settings.worker_count)
+        else:
+            self.broker = RedisBroker(settings)
+            if settings.worker_count > 0:
+                self.local_workers = LocalRedisWorkers(settings, settings.worker_count)
+        self.hub = PositionHub(metrics, settings.ws_queue_size)
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.waiting: dict[str, asyncio.Future[Outcome]] = {}
+        self.sent_at: dict[str, float] = {}
+        self.inflight: Counter[str] = Counter()
+        self.processed_t: dict[str, int] = {}
+        self.worker_counters: dict[int, dict[str, int]] = {}
+        self.parked: dict[str, tuple[int, Message]] = {}
+        self._ids = itertools.count()
+        self._prefix = uuid.uuid4().hex[:12]
+        self._forwarder: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        """Start the broker's consumers (blocking start-up runs in a thread)."""
+        self.loop = asyncio.get_running_loop()
+        if isinstance(self.broker, MemoryBroker):
+            self.broker.on_restart = lambda shard: self.metrics.worker_restarts.labels(
+                str(shard)
+            ).inc()
+        await asyncio.to_thread(self.broker.start, self._from_thread)
+        self._forwarder = asyncio.create_task(self._forward_parked())
+        if self.local_workers is not None:
+            self.local_workers.start()
+
+    async def stop(self) -> None:
+        """Stop the broker; its workers snapshot their devices first."""
+        if self._forwarder is not None:
+            self._forwarder.cancel()
+        if self.local_workers is not None:
+            await asyncio.to_thread(self.local_workers.stop)
+        await asyncio.to_thread(self.broker.stop)
+
+    # -- submit ------------------------------------------------------------------------
+
+    def submit(
+        self,
+        *,
+        site_id: str,
+        device_id: str,
+        version: int,
+        samples: dict[str, list[Message]],
+        wait: bool,
+    ) -> tuple[str, asyncio.Future[Outcome] | None]:
+        """Queue a device's samples on its shard; with ``wait`` return a future of the outcome.
+
+        Raises ApiError 429 when the device or its shard is over its bound.
+        """
+        shard = shard_of(device_id, self.broker.shards)
+        if self.inflight[device_id] >= self.settings.max_inflight_batches:
+            self.metrics.ingest_rejected.labels("device_backlog").inc()
+            raise ApiError(
+                429,
+                f"device '{device_id}' has too many unprocessed batches",
+                headers={"Retry-After": "1"},
+            )
+        overloaded = self.broker.backlog(shard) >= self.settings.shard_backlog
+        if overloaded and self.settings.overload_policy == "reject":
+            self.metrics.ingest_rejected.labels("shard_backlog").inc()
+            raise ApiError(429, "the device's worker is overloaded", headers={"Retry-After": "1"})
+        batch_id = f"{self._prefix}-{next(self._ids)}"
+        future: asyncio.Future[Outcome] | None = None
+        if wait:
+            assert self.loop is not None
+            future = self.loop.create_future()
+            self.waiting[batch_id] = future
+        self.inflight[device_id] += 1
+        self.sent_at[batch_id] = time.perf_counter()
+        message = {
+            "type": "ingest",
+            "batch_id": batch_id,
+            "site_id": site_id,
+            "device_id": device_id,
+            "version": version,
+            "samples": samples,
+            "flush": wait,
+        }
+        if overloaded:
+            # policy "latest": park the batch; a newer one from the device replaces it
+            superseded = self.parked.pop(device_id, None)
+            if superseded is not None:
+                self._supersede(superseded[1])
+            self.parked[device_id] = (shard, message)
+        else:
+            self.broker.publish(shard, message)
+        self.metrics.queue_depth.labels(str(shard)).set(self.broker.backlog(shard))
+        return batch_id, future
+
+    def _supersede(self, message: Message) -> None:
+        batch_id, device_id = message["batch_id"], message["device_id"]
+        dropped = sum(len(items) for items in message["samples"].values())
+        self.metrics.dropped_samples.labels("superseded").inc(dropped)
+        self.sent_at.pop(batch_id, None)
+        self.inflight[device_id] -= 1
+        if self.inflight[device_id] <= 0:
+            del self.inflight[device_id]
+        future = self.waiting.pop(batch_id, None)
+        if future is not None and not future.done():
+            future.set_result(
+                Outcome(0, 0, [], "dropped for a newer batch of the device (overload)", 429)
+            )
+
+    async def _forward_parked(self) -> None:
+        """Publish parked batches as their shards' backlogs fall below the bound."""
+        while True:
+            await asyncio.sleep(0.1)
+            for device_id, (shard, message) in list(self.parked.items()):
+                if self.broker.backlog(shard) < self.settings.shard_backlog:
+                    del self.parked[device_id]
+                    self.broker.publish(shard, message)
+
+    def late_before(self, device_id: str) -> int:
+        """Return the newest measurement time the device's worker has processed (-1: none)."""
+        return self.processed_t.get(device_id, -1)
+
+    # -- results ----------------------------------------------------------------------
+
+    def _from_thread(self, results: list[Message]) -> None:
+        if self.loop is not None and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self._dispatch, results)
+
+    def _dispatch(self, results: list[Message]) -> None:
+        fan_out: list[Message] = []
+        for result in results:
+            kind = result.get("type")
+            if kind == "done":
+                self._done(result)
+            elif kind == "stats":
+                self._stats(result)
+            if kind in ("done", "emitted"):
+                fan_out.extend(result.get("positions", ()))
+                fan_out.extend(result.get("events", ()))
+                self.metrics.positions.inc(len(result.get("positions", ())))
+                self.metrics.zone_events.inc(len(result.get("events", ())))
+        if fan_out:
+            self.hub.publish(fan_out)
+
+    def _done(self, result: Message) -> None:
+        batch_id = result["batch_id"]
+        device_id = result["device_id"]
+        if batch_id in self.sent_at:
+            self.metrics.ingest_to_position.observe(
+                time.perf_counter() - self.sent_at.pop(batch_id)
+            )
+            self.inflight[device_id] -= 1
+            if self.inflight[device_id] <= 0:
+                del self.inflight[device_id]
+        if "processed_t" in result:
+            self.processed_t[device_id] = max(
+                self.processed_t.get(device_id, -1), int(result["processed_t"])
+            )
+        future = self.waiting.pop(batch_id, None)
+        if future is not None and not future.done():
+            future.set_result(
+                Outcome(
+                    result.get("accepted", 0),
+                    result.get("late", 0),
+                    result.get("positions", []),
+                    result.get("error"),
+                )
+            )
+
+    def _stats(self, result: Message) -> None:
+        shard = result["shard"]
+        previous = self.worker_counters.get(shard, {})
+        counters = result["counters"]
+        # workers report running totals; a restarted worker starts again from zero
+        for outcome, key in (
+            ("used", "samples"),
+            ("late", "late"),
+            ("duplicate", "duplicate"),
+            ("unknown_id", "unknown_ids"),
+        ):
+            delta = counters.get(key, 0) - previous.get(key, 0)
+            self.metrics.worker_samples.labels(outcome).inc(
+                delta if delta >= 0 else counters.get(key, 0)
+            )
+        self.worker_counters[shard] = counters
+        self.metrics.worker_devices.labels(str(shard)).set(result["devices"])
+        self.metrics.worker_update_seconds.labels(str(shard)).set(result["update_seconds"])
+        self.metrics.queue_depth.labels(str(shard)).set(self.broker.backlog(shard))

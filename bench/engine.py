@@ -1,0 +1,224 @@
+"""Particle-filter cost per device update, batched, on a synthetic office floor.
+
+The floor is 120 × 80 m at the service's 0.25 m raster: corridors every 20 m
+and rooms with doors along them, 216 access points on a 7.5 m lattice at
+3 m height with scattered path-loss parameters. Each device walks through
+the plan (two 0.7 m steps per 1 s window, turning away from walls) and
+hears the ``M`` strongest access points with 6 dB noise. Filters are warmed
+up first, so the timed updates run in the converged regime (resampling,
+mutation and centre sampling every window).
+
+Prints the median CPU time per device update (µs) over the repeats for
+1, 10, 100 and 1,000 devices per batch and 5, 20 and 50 transmitters heard,
+for the filter update alone (``update_filters``, two steps per window) and
+for the whole positioning loop (``PositioningEngine.process``:
+preprocessing, floor selection, filter, refinement, projection; the
+batches carry radio only, so particles move by the random walk).
+
+Run: ``python -m bench.engine`` (about three minutes), ``--profile`` for a
+cProfile of 100 devices hearing 20 transmitters.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import cProfile  # noqa: E402
+import pstats  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from app.engine.particle import (  # noqa: E402
+    FilterInput,
+    ParticleBank,
+    ParticleFilterParams,
+    build_floor_models,
+    update_filters,
+)
+from app.engine.pathloss import expected_rssi, ranges_3d  # noqa: E402
+from app.engine.plan import FloorPlan, burn_segments  # noqa: E402
+from app.engine.positioning import PositioningEngine, PositioningParams  # noqa: E402
+from app.engine.samples import Batch, RssiReadings  # noqa: E402
+from app.engine.site import Emitters, Floor, SiteModel  # noqa: E402
+
+WIDTH_M, HEIGHT_M, CELL_M = 120.0, 80.0, 0.25
+STEP_M = 0.7
+NOISE_DB = 6.0
+
+
+def office_plan() -> FloorPlan:
+    """Return a 120 × 80 m floor: a corridor every 20 m, 5 m rooms on both sides, doors."""
+    segments = [[0, 0, WIDTH_M, 0], [WIDTH_M, 0, WIDTH_M, HEIGHT_M]]
+    segments += [[WIDTH_M, HEIGHT_M, 0, HEIGHT_M], [0, HEIGHT_M, 0, 0]]
+    for yc in np.arange(10.0, HEIGHT_M, 20.0):
+        for side in (-1.5, 1.5):
+            y = yc + side
+            # corridor wall with a 1 m door every 5 m
+            for x0 in np.arange(0.0, WIDTH_M, 5.0):
+                segments.append([x0, y, x0 + 4.0, y])
+            y_far = yc + np.sign(side) * 8.5
+            segments.append([0.0, y_far, WIDTH_M, y_far])
+            for x0 in np.arange(5.0, WIDTH_M, 5.0):
+                segments.append([x0, y, x0, y_far])
+    ny, nx = int(HEIGHT_M / CELL_M), int(WIDTH_M / CELL_M)
+    free = np.ones((ny, nx), bool)
+    burn_segments(free, np.array(segments, float), origin=np.zeros(2), cell=CELL_M)
+    return FloorPlan.from_raster(origin=np.zeros(2), cell=CELL_M, free=free)
+
+
+def office_site(rng: np.random.Generator) -> SiteModel:
+    """Return the synthetic site: one office floor and its access points."""
+    plan = office_plan()
+    gx, gy = np.meshgrid(np.arange(3.75, WIDTH_M, 7.5), np.arange(5.0, HEIGHT_M, 7.5))
+    n = gx.size
+    xyz = np.column_stack([gx.ravel(), gy.ravel(), np.full(n, 3.0)])
+    tx = Emitters(
+        ids=tuple(f"ap{i}" for i in range(n)),
+        floor=np.zeros(n, np.int32),
+        xyz=xyz,
+        A=rng.uniform(-45.0, -35.0, n),
+        B=rng.uniform(15.0, 25.0, n),
+        sigma=rng.uniform(4.0, 8.0, n),
+    )
+    return SiteModel("bench", (Floor("F1", 0, 4.0, plan),), tx)
+
+
+class Walkers:
+    """Ground truth of many devices walking the plan and the readings they take."""
+
+    def __init__(self, site: SiteModel, d: int, rng: np.random.Generator) -> None:
+        self.site = site
+        self.plan = site.floors[0].plan
+        self.rng = rng
+        self.xy = self.plan.sample_free(d, rng)
+        self.heading = rng.uniform(0.0, 360.0, d)
+
+    def step(self) -> None:
+        """Advance every walker by two steps, turning at random where a wall is ahead."""
+        for _ in range(2):
+            rad = np.radians(self.heading)
+            new = self.xy + STEP_M * np.column_stack([np.sin(rad), np.cos(rad)])
+            ok = self.plan.segment_free(self.xy, new)
+            self.xy = np.where(ok[:, None], new, self.xy)
+            self.heading = np.where(ok, self.heading, self.rng.uniform(0.0, 360.0, ok.size))
+
+    def readings(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return (D, m) indices and RSSI (dBm) of the m strongest transmitters of each walker."""
+        tx = self.site.transmitters
+        r = ranges_3d(self.xy, tx.xyz, 1.2, 0.5)
+        rssi = expected_rssi(r, tx.A, tx.B) + self.rng.normal(0.0, NOISE_DB, r.shape)
+        top = np.argsort(-rssi, axis=1)[:, :m]
+        return top, np.take_along_axis(rssi, top, axis=1)
+
+
+def filter_inputs(
+    walkers: Walkers, slots: np.ndarray, rngs: list[np.random.Generator], t: int, m: int
+) -> list[FilterInput]:
+    """Return one window's filter inputs: two steps and m transmitters per device."""
+    tx, rssi = walkers.readings(m)
+    heading = walkers.heading
+    return [
+        FilterInput(
+            slot=int(slots[i]),
+            t=t,
+            tx=tx[i],
+            rssi=rssi[i],
+            count=np.ones(m),
+            rng=rngs[i],
+            step_length=np.full(2, STEP_M),
+            step_heading=np.full(2, heading[i]),
+        )
+        for i in range(slots.size)
+    ]
+
+
+def time_filter(site: SiteModel, d: int, m: int, warmup: int, repeats: int, n: int = 1000) -> float:
+    """Return the median CPU µs per device of ``update_filters`` over the repeats."""
+    params = ParticleFilterParams(n_particles=n)
+    model = build_floor_models(site, params)[0]
+    rng = np.random.default_rng(d * 1000 + m)
+    walkers = Walkers(site, d, rng)
+    bank = ParticleBank(params.n_particles, d)
+    slots = np.array([bank.allocate() for _ in range(d)])
+    rngs = [np.random.default_rng(i) for i in range(d)]
+    samples = []
+    for k in range(warmup + repeats):
+        walkers.step()
+        inputs = filter_inputs(walkers, slots, rngs, 1000 * (k + 1), m)
+        start = time.process_time()
+        update_filters(bank, model, inputs, params)
+        elapsed = time.process_time() - start
+        if k >= warmup:
+            samples.append(elapsed / d)
+    return float(np.median(samples) * 1e6)
+
+
+def time_engine(site: SiteModel, d: int, m: int, warmup: int, repeats: int, n: int = 1000) -> float:
+    """Return the median CPU µs per device of ``PositioningEngine.process`` over the repeats."""
+    engine = PositioningEngine(site, PositioningParams(filter=ParticleFilterParams(n_particles=n)))
+    rng = np.random.default_rng(d * 1000 + m + 7)
+    walkers = Walkers(site, d, rng)
+    ids = [f"dev{i}" for i in range(d)]
+    for device_id in ids:
+        engine.add(device_id)
+    samples = []
+    for k in range(warmup + repeats):
+        walkers.step()
+        tx, rssi = walkers.readings(m)
+        t = 1000 * (k + 1) + 500
+        batches = {
+            device_id: Batch(
+                rssi=RssiReadings(
+                    t=np.full(m, t, np.int64), tx=tx[i].astype(np.int32), rssi=rssi[i]
+                )
+            )
+            for i, device_id in enumerate(ids)
+        }
+        start = time.process_time()
+        engine.process(batches)
+        elapsed = time.process_time() - start
+        if k >= warmup:
+            samples.append(elapsed / d)
+    return float(np.median(samples) * 1e6)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Print the tables, or a profile with ``--profile``."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--particles", type=int, default=1000, help="N per filter")
+    parser.add_argument("--devices", default="1,10,100,1000", help="batch sizes, comma-separated")
+    parser.add_argument("--warmup", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=9)
+    args = parser.parse_args(argv)
+    site = office_site(np.random.default_rng(0))
+    if args.profile:
+        profiler = cProfile.Profile()
+        profiler.enable()
+        time_filter(site, 100, 20, 3, 10)
+        profiler.disable()
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
+        return
+    counts = tuple(int(v) for v in args.devices.split(","))
+    heard = (5, 20, 50)
+    print(f"load average at start: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    for title, fn in (
+        ("particle filter update (update_filters)", time_filter),
+        ("whole positioning loop (PositioningEngine.process)", time_engine),
+    ):
+        n = args.particles
+        print(f"{title}: CPU µs per device update, N = {n}, median of {args.repeats}")
+        print(f"{'devices/batch':>14s}" + "".join(f"{f'{m} tx':>10s}" for m in heard))
+        for d in counts:
+            row = [fn(site, d, m, args.warmup, args.repeats, n) for m in heard]
+            print(f"{d:>14d}" + "".join(f"{v:>10.0f}" for v in row))
+        print()
+    print(f"load average at end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+
+
+if __name__ == "__main__":
+    main()

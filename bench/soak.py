@@ -1,0 +1,131 @@
+"""Soak: K devices at 1 Hz for a long time against a real `locus serve`; RSS over time.
+
+    python bench/soak.py --devices 500 --minutes 30 --workers 2
+
+Prints the resident memory (API + workers, MB) every ``--every`` seconds, the
+request rate and latency of each interval, and the memory trend (MB/hour,
+least-squares slope over the second half of the run, after warm-up).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from app import demo  # noqa: E402
+from bench.load import ADMIN, Connection, _children, _device, _rss_mb  # noqa: E402
+
+
+async def _soak(
+    url: str, devices: int, seconds: float, every: float, pids: list[int]
+) -> list[tuple]:
+    beacons = [
+        {"xyz": f["geometry"]["coordinates"], **f["properties"]}
+        for f in demo.load_map()["features"]
+        if f["properties"]["kind"] == "transmitter"
+    ]
+    host, port = url.removeprefix("http://").split(":")
+    latencies: list[float] = []
+    errors: list[int] = []
+    t0 = int(time.time() * 1000) - 3_600_000
+    until = time.monotonic() + seconds
+    tasks = [
+        asyncio.create_task(
+            _device(Connection(host, int(port)), f"soak-{i}", beacons, until, latencies, errors, t0)
+        )
+        for i in range(devices)
+    ]
+    series = []
+    started = time.monotonic()
+    seen = 0
+    while time.monotonic() < until:
+        await asyncio.sleep(every)
+        window = np.array(latencies[seen:]) * 1000
+        seen = len(latencies)
+        row = (
+            time.monotonic() - started,
+            _rss_mb(pids),
+            window.size / every,
+            float(np.percentile(window, 50)) if window.size else float("nan"),
+            float(np.percentile(window, 99)) if window.size else float("nan"),
+            len(errors),
+        )
+        series.append(row)
+        print(
+            f"{row[0]:8.0f} s  RSS {row[1]:7.1f} MB  {row[2]:7.1f} req/s  p50 {row[3]:6.1f} ms  "
+            f"p99 {row[4]:7.1f} ms  errors {row[5]}",
+            flush=True,
+        )
+    await asyncio.gather(*tasks)
+    return series
+
+
+def main() -> None:
+    """Run the soak and print the memory series and trend."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--devices", type=int, default=500)
+    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--every", type=float, default=60.0, help="seconds between samples")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--port", type=int, default=8878)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as home:
+        env = os.environ | {"LOCUS_ADMIN_KEY": ADMIN}
+        server = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "app.cli",
+                "serve",
+                "--port",
+                str(args.port),
+                "--workers",
+                str(args.workers),
+                "--home",
+                home,
+            ],
+            cwd=ROOT,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        url = f"http://127.0.0.1:{args.port}"
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                try:
+                    if httpx.get(url + "/readyz", timeout=1).status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    time.sleep(0.3)
+            demo.install(url, ADMIN)
+            pids = [server.pid, *_children(server.pid)]
+            series = asyncio.run(_soak(url, args.devices, args.minutes * 60, args.every, pids))
+        finally:
+            server.terminate()
+            server.wait(timeout=120)
+    t = np.array([r[0] for r in series])
+    rss = np.array([r[1] for r in series])
+    half = t >= t[-1] / 2
+    slope = np.polyfit(t[half] / 3600, rss[half], 1)[0] if half.sum() >= 2 else float("nan")
+    print(f"\ndevices={args.devices} workers={args.workers} minutes={args.minutes}")
+    print(
+        f"RSS start {rss[0]:.1f} MB, end {rss[-1]:.1f} MB, peak {rss.max():.1f} MB; "
+        f"trend over the second half {slope:+.1f} MB/hour"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,204 @@
+"""Ingest: accepted batches reach the device's filter; every malformed body gets the
+documented 4xx and changes nothing."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+T0 = 1_700_000_000_000
+AP = ["aa:00:00:00:00:01", "aa:00:00:00:00:02", "aa:00:00:00:00:03"]
+
+
+def batch(site: str, device: str, t0: int = T0, seconds: int = 3) -> dict:
+    """Return a WiFi batch: one scan of the three APs per second."""
+    wifi = [
+        {"t": t0 + 1000 * s + 10 * i, "id": ap, "rssi": -50 - 5 * i}
+        for s in range(seconds)
+        for i, ap in enumerate(AP)
+    ]
+    return {"device_id": device, "site_id": site, "wifi": wifi}
+
+
+def _bad_bodies(site: str) -> dict[str, tuple[str | bytes, int]]:
+    good = batch(site, "bad-dev")
+    far_future = int(time.time() * 1000) + 10 * 24 * 3600 * 1000
+    huge = {
+        "device_id": "bad-dev",
+        "site_id": site,
+        "wifi": [{"t": T0 + i, "id": AP[0], "rssi": -50} for i in range(10_001)],
+    }
+    return {
+        "rssi as string": (json.dumps(good).replace("-50", '"loud"', 1), 422),
+        "missing device_id": (json.dumps({k: v for k, v in good.items() if k != "device_id"}), 422),
+        "NaN rssi": (json.dumps(good).replace("-50", "NaN", 1), 422),
+        "float time": (json.dumps(good).replace(str(T0), f"{T0}.5", 1), 422),
+        "time before 2000": (json.dumps(batch(site, "bad-dev", t0=1000)), 422),
+        "far future time": (json.dumps(batch(site, "bad-dev", t0=far_future)), 422),
+        "no samples": (json.dumps({"device_id": "bad-dev", "site_id": site}), 422),
+        "imu vector of 2": (
+            json.dumps(
+                {"device_id": "bad-dev", "site_id": site, "imu": [{"t": T0, "acc": [1, 2]}]}
+            ),
+            422,
+        ),
+        "imu sample without fields": (
+            json.dumps({"device_id": "bad-dev", "site_id": site, "imu": [{"t": T0}]}),
+            422,
+        ),
+        "negative range": (
+            json.dumps(
+                {
+                    "device_id": "bad-dev",
+                    "site_id": site,
+                    "uwb": [{"t": T0, "anchor": "A1", "range": -1}],
+                }
+            ),
+            422,
+        ),
+        "unknown field": (json.dumps(good | {"gps": []}), 422),
+        "not json": (b"{device_id: 1", 422),
+        "too many samples": (json.dumps(huge), 413),
+        "body over 1 MiB": (
+            json.dumps(good | {"device_id": "x" * 10}).replace(
+                '"wifi"', '"pad": "' + "x" * (1 << 20) + '", "wifi"'
+            ),
+            413,
+        ),
+        "unknown site": (json.dumps(batch("no-such-site", "bad-dev")), 404),
+    }
+
+
+@pytest.mark.parametrize("case", sorted(_bad_bodies("s")))
+def test_malformed_batches_get_4xx_and_change_nothing(
+    client: TestClient, admin: dict, site_id: str, case: str
+) -> None:
+    body, status = _bad_bodies(site_id)[case]
+    r = client.post(
+        "/v1/ingest?wait=true", content=body, headers=admin | {"content-type": "application/json"}
+    )
+    assert r.status_code == status, r.text
+    assert set(r.json()["error"]) == {"code", "message", "details"}
+    # nothing reached a filter: the device has no position at all
+    assert client.get("/v1/devices/bad-dev/position", headers=admin).status_code == 404
+
+
+def test_wait_returns_positions_in_time_order(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    r = client.post("/v1/ingest?wait=true", json=batch(site_id, f"{site_id}-a"), headers=admin)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["accepted"] == 9 and body["late"] == 0
+    ts = [p["t"] for p in body["positions"]]
+    assert ts == sorted(ts) and len(ts) == 3
+    assert all(p["floor_id"] == "G" and p["device_id"] == f"{site_id}-a" for p in body["positions"])
+
+
+def test_unsorted_samples_are_ordered(client: TestClient, admin: dict, site_id: str) -> None:
+    body = batch(site_id, f"{site_id}-u")
+    body["wifi"].reverse()
+    r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
+    assert [p["t"] for p in r.json()["positions"]] == [T0, T0 + 1000, T0 + 2000]
+
+
+def test_late_samples_are_counted_not_used(client: TestClient, admin: dict, site_id: str) -> None:
+    device = f"{site_id}-late"
+    client.post("/v1/ingest?wait=true", json=batch(site_id, device, seconds=5), headers=admin)
+    old = batch(site_id, device, seconds=2)
+    r = client.post("/v1/ingest?wait=true", json=old, headers=admin)
+    assert r.json() == {"accepted": 0, "late": 6, "positions": []}
+    r = client.post("/v1/ingest", json=old, headers=admin)
+    assert r.status_code == 202 and r.json() == {"accepted": 0, "late": 6}
+
+
+def test_accepted_without_wait_is_processed(client: TestClient, admin: dict, site_id: str) -> None:
+    device = f"{site_id}-async"
+    r = client.post("/v1/ingest", json=batch(site_id, device), headers=admin)
+    assert r.status_code == 202 and r.json() == {"accepted": 9, "late": 0}
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        # the reorder window holds the newest 2 s until the device goes quiet
+        latest = client.get(f"/v1/devices/{device}/position", headers=admin)
+        if latest.status_code == 200 and latest.json()["t"] == T0 + 2000:
+            break
+        time.sleep(0.1)
+    assert latest.status_code == 200 and latest.json()["t"] == T0 + 2000
+
+
+def test_history_is_ascending_and_paginated(client: TestClient, admin: dict, site_id: str) -> None:
+    device = f"{site_id}-hist"
+    client.post("/v1/ingest?wait=true", json=batch(site_id, device, seconds=7), headers=admin)
+    page = client.get(f"/v1/devices/{device}/positions?limit=3", headers=admin).json()
+    assert [p["t"] for p in page["items"]] == [T0, T0 + 1000, T0 + 2000]
+    rest = client.get(
+        f"/v1/devices/{device}/positions?limit=10&from={page['next_from']}", headers=admin
+    ).json()
+    assert [p["t"] for p in rest["items"]] == [T0 + 1000 * k for k in range(3, 7)]
+    assert rest["next_from"] is None
+    window = client.get(
+        f"/v1/devices/{device}/positions?from={T0 + 1000}&to={T0 + 2000}", headers=admin
+    ).json()
+    assert [p["t"] for p in window["items"]] == [T0 + 1000, T0 + 2000]
+
+
+def test_zone_events_on_entering_and_leaving(client: TestClient, admin: dict, site_id: str) -> None:
+    device = f"{site_id}-zone"
+    # a tag walking east at 1 m/s along y = 4, through the Lab zone (12 ≤ x ≤ 16)
+    fixes = [
+        {"t": T0 + 200 * k, "x": 10.5 + 0.2 * k, "y": 4.0, "floor_id": "G", "std": 0.1}
+        for k in range(40)
+    ]
+    url = f"/v1/ws/positions?site_id={site_id}&key=lk_test_admin_key"
+    with client.websocket_connect(url) as ws:
+        r = client.post(
+            "/v1/ingest?wait=true",
+            json={"device_id": device, "site_id": site_id, "uwb_fix": fixes},
+            headers=admin,
+        )
+        positions = r.json()["positions"]
+        assert len(positions) >= 30 and all(p["method"] == "ekf" for p in positions)
+        messages = [ws.receive_json() for _ in range(len(positions) + 2)]
+    zone = [(m["event"], m["zone"]) for m in messages if m["type"] == "zone"]
+    assert zone == [("enter", "Lab"), ("exit", "Lab")]
+    inside = [p for p in positions if 12 <= p["x"] <= 16]
+    entered = next(m["t"] for m in messages if m["type"] == "zone" and m["event"] == "enter")
+    assert entered == inside[0]["t"]
+
+
+def test_locator_sightings_reach_the_tag(client: TestClient, admin: dict, site_id: str) -> None:
+    r = client.post(
+        "/v1/ingest/locator?wait=true",
+        json={
+            "site_id": site_id,
+            "locator_id": "L1",
+            "sightings": [{"t": T0, "tag_id": "tag-1", "rssi": -60}],
+        },
+        headers=admin,
+    )
+    # L1 is not on the map: the sighting is accepted but cannot produce a position
+    assert r.status_code == 200 and r.json()["positions"] == []
+
+
+def test_websocket_ingest_answers_each_message(client: TestClient, site_id: str) -> None:
+    device = f"{site_id}-ws"
+    with client.websocket_connect("/v1/ws/ingest?wait=true&key=lk_test_admin_key") as ws:
+        ws.send_text(json.dumps(batch(site_id, device)))
+        answer = ws.receive_json()
+        assert answer["accepted"] == 9 and len(answer["positions"]) == 3
+        ws.send_text(json.dumps(batch(site_id, device) | {"wifi": []}))
+        error = ws.receive_json()
+        assert error["status"] == 422 and error["error"]["code"] == "invalid"
+        ws.send_text(json.dumps(batch("no-such-site", device)))
+        assert ws.receive_json()["status"] == 404
+
+
+def test_websocket_ingest_needs_a_key(client: TestClient) -> None:
+    with pytest.raises(WebSocketDisconnect) as closed:
+        with client.websocket_connect("/v1/ws/ingest") as ws:
+            ws.receive_json()
+    assert closed.value.code == 1008

@@ -1,0 +1,55 @@
+"""Surveys: recordings are stored with their counts; bad ones are rejected whole."""
+
+from __future__ import annotations
+
+from fastapi.testclient import TestClient
+
+from app.surveys.models import Survey
+from app.surveys.service import survey_samples
+
+T0 = 1_700_000_000_000
+
+
+def _survey(floor: str = "G") -> dict:
+    return {
+        "device_id": "surveyor",
+        "floor_id": floor,
+        "name": "corridor",
+        "waypoints": [{"t": T0, "x": 1.0, "y": 8.0}, {"t": T0 + 10_000, "x": 9.0, "y": 8.0}],
+        "wifi": [{"t": T0 + 500, "id": "aa:00:00:00:00:01", "rssi": -61, "freq": 2412}],
+        "imu": [{"t": T0 + 20, "acc": [0.1, 0.2, 9.8], "rot": [0.0, 0.0, 0.1]}],
+    }
+
+
+def test_survey_is_stored_with_counts(client: TestClient, admin: dict, site_id: str) -> None:
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=_survey(), headers=admin)
+    assert r.status_code == 201, r.text
+    body = r.json()
+    assert body["counts"] == {
+        "waypoints": 2,
+        "wifi": 1,
+        "ble": 0,
+        "imu": 1,
+        "uwb": 0,
+        "uwb_fix": 0,
+        "baro": 0,
+    }
+    with client.app.state.sessions() as db:
+        stored = survey_samples(db.get(Survey, body["id"]))
+    assert stored["waypoints"][1] == {"t": T0 + 10_000, "x": 9.0, "y": 8.0}
+    assert stored["wifi"][0]["rssi"] == -61
+    listed = client.get(f"/v1/sites/{site_id}/surveys", headers=admin).json()
+    assert [s["id"] for s in listed["items"]] == [body["id"]] and listed["total"] == 1
+
+
+def test_bad_surveys_are_rejected(client: TestClient, admin: dict, site_id: str) -> None:
+    unordered = _survey()
+    unordered["waypoints"].reverse()
+    for body, status in (
+        (_survey(floor="nope"), 404),
+        (unordered, 422),
+        (_survey() | {"waypoints": []}, 422),
+    ):
+        r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+        assert r.status_code == status, r.text
+    assert client.get(f"/v1/sites/{site_id}/surveys", headers=admin).json()["total"] == 0

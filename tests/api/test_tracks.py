@@ -1,0 +1,99 @@
+"""Tracks: fitted in the pool, stored, and the device's position set; bad tracks get 4xx."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.geometry.floormap import parse_floor_map
+from app.geometry.raster import floor_plan
+from tests.conftest import floor_doc
+
+T0 = 1_700_000_000_000
+
+
+def _track(site: str, **changes: object) -> dict:
+    # Along y = 8.5 from x = 2 eastwards: 14 links of 1 m; the dead-reckoned heading
+    # drifts 0.05 rad left per link, so the raw track curls north into the outline.
+    body = {
+        "device_id": f"{site}-saver",
+        "site_id": site,
+        "floor_id": "G",
+        "start": {"x": 2.0, "y": 8.5},
+        "t0": T0,
+        "heading": 90.0,
+        "segments": [
+            {"t": T0 + 700 * (i + 1), "length": 1.0, "turn": 0.05 if i else 0.0} for i in range(14)
+        ],
+    }
+    return body | changes
+
+
+def _wait_done(client: TestClient, admin: dict, track_id: str) -> dict:
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        body = client.get(f"/v1/tracks/{track_id}", headers=admin).json()
+        if body["status"] in ("done", "failed"):
+            return body
+        time.sleep(0.1)
+    raise AssertionError("fit did not finish")
+
+
+def test_track_is_fitted_inside_the_plan(client: TestClient, admin: dict, site_id: str) -> None:
+    body = _track(site_id)
+    r = client.post("/v1/tracks", json=body, headers=admin)
+    assert r.status_code == 202, r.text
+    result = _wait_done(client, admin, r.json()["track_id"])
+    assert result["status"] == "done", result
+    points = np.array([[p["x"], p["y"]] for p in result["points"]])
+    assert [p["t"] for p in result["points"]] == [T0] + [s["t"] for s in body["segments"]]
+    plan = floor_plan(parse_floor_map(floor_doc()), cell=0.25)
+    assert plan.segment_free(points[:-1], points[1:]).all()
+    # the raw track leaves the building: the fit had to change it
+    heading = math.pi / 2 - math.radians(90.0) + np.cumsum([s["turn"] for s in body["segments"]])
+    raw = np.vstack(
+        [[2.0, 8.5], [2.0, 8.5] + np.cumsum(np.c_[np.cos(heading), np.sin(heading)], axis=0)]
+    )
+    assert not plan.segment_free(raw[:-1], raw[1:]).all()
+    assert result["score"] > 0
+    latest = client.get(f"/v1/devices/{site_id}-saver/position", headers=admin).json()
+    assert latest["method"] == "trackfit" and latest["t"] == body["segments"][-1]["t"]
+    assert (latest["x"], latest["y"]) == (result["points"][-1]["x"], result["points"][-1]["y"])
+
+
+@pytest.mark.parametrize(
+    ("change", "status"),
+    [
+        ({"segments": []}, 422),
+        ({"segments": [{"t": T0 + 1, "length": -1.0, "turn": 0.0}]}, 422),
+        ({"segments": [{"t": T0 + 1, "length": 500.0, "turn": 0.0}]}, 422),
+        ({"segments": [{"t": T0 - 1, "length": 1.0, "turn": 0.0}]}, 422),
+        ({"floor_id": "nope"}, 404),
+        ({"site_id": "no-such-site"}, 404),
+        ({"start": {"x": 30.0, "y": 5.0}}, 422),
+        ({"grid": 0.01}, 422),
+    ],
+)
+def test_bad_tracks_are_rejected(
+    client: TestClient, admin: dict, site_id: str, change: dict, status: int
+) -> None:
+    r = client.post("/v1/tracks", json=_track(site_id, **change), headers=admin)
+    assert r.status_code == status, r.text
+
+
+def test_unfittable_track_fails_with_a_reason(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    # 40 m straight east in a 20 m wide building cannot be fitted by 10% scaling
+    body = _track(site_id, segments=[{"t": T0 + 1000, "length": 40.0, "turn": 0.0}])
+    r = client.post("/v1/tracks", json=body, headers=admin)
+    result = _wait_done(client, admin, r.json()["track_id"])
+    assert result["status"] == "failed" and "link 1" in result["error"]
+
+
+def test_unknown_track_is_404(client: TestClient, admin: dict) -> None:
+    assert client.get("/v1/tracks/nope", headers=admin).status_code == 404
