@@ -119,6 +119,24 @@ def cmd_import_ilc(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ilc_maps(args: argparse.Namespace) -> int:
+    """Write an ILC site's floors as the API's floor-map GeoJSON files (one per floor)."""
+    import json
+
+    from app.datasets.ilc import read_floor, site_floors
+
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for floor_dir in site_floors(Path(args.site_dir)):
+        floor = read_floor(floor_dir, rooms_walkable=args.rooms_walkable)
+        path = out / f"{floor.name}.geojson"
+        path.write_text(json.dumps(floor.geojson, separators=(",", ":")) + "\n", encoding="utf-8")
+        print(
+            f"{floor.name}: level {floor.level}, {len(floor.geojson['features'])} features → {path}"
+        )
+    return 0
+
+
 def cmd_worker(args: argparse.Namespace) -> int:
     """Run one filter worker node on the Redis broker until SIGTERM."""
     from app.workers.redis_broker import redis_worker_main
@@ -220,6 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
     ilc.add_argument("--limit", type=int, help="at most this many walks per floor")
     ilc.add_argument("--floors", nargs="+", help="only these floors (e.g. F1 F2)")
     ilc.set_defaults(func=cmd_import_ilc)
+    maps = commands.add_parser("ilc-maps", help="convert an ILC site's floors to floor maps")
+    maps.add_argument("site_dir", help="e.g. ../shared/data/ilc/site1")
+    maps.add_argument("out_dir", help="folder for one FLOOR.geojson per floor")
+    maps.add_argument("--rooms-walkable", action="store_true", help="shops become rooms")
+    maps.set_defaults(func=cmd_ilc_maps)
     replay = commands.add_parser("replay", help="replay ILC test walks through a server")
     replay.add_argument("site_dir", help="e.g. ../shared/data/ilc/site1")
     replay.add_argument("--site-id", required=True)

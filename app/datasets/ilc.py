@@ -287,6 +287,12 @@ def site_walks(site_dir: Path) -> list[tuple[str, Path]]:
     return sorted(walks, key=lambda fw: (floor_level(fw[0]), fw[0], fw[1].name))
 
 
+def site_floors(site_dir: Path) -> list[Path]:
+    """Return the floor folders of a site (those with a ``geojson_map.json``), by level."""
+    found = [d for d in Path(site_dir).iterdir() if (d / "geojson_map.json").is_file()]
+    return sorted(found, key=lambda d: (floor_level(d.name), d.name))
+
+
 def fresh_wifi(scan: WifiScan, max_age_ms: int = 2000) -> WifiScan:
     """Drop cached readings: keep rows heard at most ``max_age_ms`` before their scan time."""
     # age = t_scan - t_last_seen

@@ -191,3 +191,17 @@ def test_rooms_walkable_names_shops_as_rooms_and_keeps_voids_as_barriers() -> No
     assert {f["properties"]["name"] for f in barriers} <= {"zhongkong", "feikaifangquyu"}
     assert "zhongkong" in {f["properties"]["name"] for f in barriers}
     assert fmap.walkable.area > parse_floor_map(floor_map_geojson(SITE / "F2")).walkable.area
+
+
+def test_shipped_site1_maps_are_the_converters_output(tmp_path: Path) -> None:
+    """maps/site1 is exactly what `locus ilc-maps` writes: it cannot drift from the converter."""
+    import json
+
+    from app.cli import main
+
+    assert main(["ilc-maps", str(SITE), str(tmp_path)]) == 0
+    shipped = Path(__file__).resolve().parents[2] / "maps" / "site1"
+    for name in FLOORS:
+        fresh = json.loads((tmp_path / f"{name}.geojson").read_text())
+        assert json.loads((shipped / f"{name}.geojson").read_text()) == fresh
+        parse_floor_map(fresh)  # the server's own validation accepts it
