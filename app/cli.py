@@ -150,40 +150,68 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """Replay site1-style walks through a server and print its accuracy on them."""
+    """Replay a recording (or a site's held-out walks) through a server; print the positions."""
+    import json
+
     import httpx
     import numpy as np
 
-    from app.datasets.ilc import read_walk, site_walks
+    from app.datasets.ilc import site_walks
     from app.evaluation.metrics import HEADER, error_stats, format_row
     from app.evaluation.split import walk_split
-    from app.replay import replay_walk, score
+    from app.replay import load_recording, replay_samples, score
 
     key = args.key or os.environ.get("LOCUS_ADMIN_KEY")
-    walks = site_walks(Path(args.site_dir))
-    _, test = walk_split([p.name.split(".")[0] for _, p in walks], args.test_fraction)
-    chosen = [(f, p) for f, p in walks if p.name.split(".")[0] in set(test)][: args.limit]
+    source = Path(args.recording)
+    if source.is_dir():
+        walks = site_walks(source)
+        _, test = walk_split([p.name.split(".")[0] for _, p in walks], args.test_fraction)
+        chosen = [p for _, p in walks if p.name.split(".")[0] in set(test)][: args.limit]
+        recordings = [load_recording(p) for p in chosen]
+    else:
+        recordings = [load_recording(source)]
+
+    def emit(positions: list[dict]) -> None:
+        if not args.quiet:
+            for position in positions:
+                print(json.dumps(position), flush=True)
+
     errors, floor_hits = [], []
     with httpx.Client(
         base_url=args.server, headers={"Authorization": f"Bearer {key}"}, timeout=120
     ) as http:
-        for floor, path in chosen:
-            walk = read_walk(path, floor)
-            positions = replay_walk(
-                http, walk, site_id=args.site_id, device_id=f"{args.prefix}{walk.walk_id}"
+        for rec in recordings:
+            site_id = args.site_id or rec.site_id
+            if site_id is None:
+                print("the recording names no site: pass --site-id", file=sys.stderr)
+                return 2
+            device_id = args.device_id or rec.device_id or "replay"
+            if rec.walk is not None and source.is_dir():
+                device_id = f"{args.prefix}{rec.walk.walk_id}"
+            positions = replay_samples(
+                http,
+                rec.samples,
+                site_id=site_id,
+                device_id=device_id,
+                batch_ms=args.batch_ms,
+                speed=args.speed,
+                on_positions=emit,
             )
-            scored = score(walk, positions)
-            errors.append(scored.errors)
-            floor_hits.append(scored.floor_ok)
-    hits = np.concatenate(floor_hits) if floor_hits else np.zeros(0, bool)
-    print(HEADER)
-    print(
-        format_row(
-            f"replay of {len(chosen)} test walks",
-            error_stats(np.concatenate(errors)),
-            1 - hits.mean() if hits.size else float("nan"),
+            if rec.walk is not None:
+                scored = score(rec.walk, positions)
+                errors.append(scored.errors)
+                floor_hits.append(scored.floor_ok)
+    if errors:
+        hits = np.concatenate(floor_hits)
+        print(HEADER, file=sys.stderr)
+        print(
+            format_row(
+                f"replay of {len(errors)} walk(s)",
+                error_stats(np.concatenate(errors)),
+                1 - hits.mean() if hits.size else float("nan"),
+            ),
+            file=sys.stderr,
         )
-    )
     return 0
 
 
@@ -243,14 +271,24 @@ def build_parser() -> argparse.ArgumentParser:
     maps.add_argument("out_dir", help="folder for one FLOOR.geojson per floor")
     maps.add_argument("--rooms-walkable", action="store_true", help="shops become rooms")
     maps.set_defaults(func=cmd_ilc_maps)
-    replay = commands.add_parser("replay", help="replay ILC test walks through a server")
-    replay.add_argument("site_dir", help="e.g. ../shared/data/ilc/site1")
-    replay.add_argument("--site-id", required=True)
+    replay = commands.add_parser("replay", help="replay a recording through a server")
+    replay.add_argument(
+        "recording",
+        help="an ILC walk (.txt.gz), a JSON file of ingest bodies, or an ILC site folder "
+        "(its held-out test walks)",
+    )
+    replay.add_argument("--site-id", help="site (default: the recording's)")
+    replay.add_argument("--device-id", help="device (default: the recording's or walk's id)")
+    replay.add_argument(
+        "--speed", type=float, default=0.0, help="1 = real time, 10 = ten times; 0 = no pacing"
+    )
+    replay.add_argument("--batch-ms", type=int, default=1000, help="measurement time per batch")
+    replay.add_argument("--quiet", action="store_true", help="print no positions")
     replay.add_argument("--server", default="http://127.0.0.1:8000")
     replay.add_argument("--key", help="admin or device key (default: $LOCUS_ADMIN_KEY)")
     replay.add_argument("--limit", type=int, help="at most this many test walks")
     replay.add_argument("--test-fraction", type=float, default=0.2)
-    replay.add_argument("--prefix", default="replay-", help="device id prefix")
+    replay.add_argument("--prefix", default="replay-", help="device id prefix (site folder)")
     replay.set_defaults(func=cmd_replay)
     evaluate = commands.add_parser("eval", help="accuracy on the recordings in ../shared/data")
     evaluate.add_argument("name", choices=sorted(EVALUATIONS))

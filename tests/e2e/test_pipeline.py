@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -96,6 +98,40 @@ def test_replay_gives_identical_positions(new_database: Any, tmp_path: Path) -> 
     assert len(runs[0]) == 29
     assert runs[0] == runs[1]
     assert all(p["method"] == "pf" for p in runs[0])
+
+
+def _cli_replay(server: LiveServer, recording: Path, device: str, speed: float) -> list[dict]:
+    out = subprocess.run(
+        [sys.executable, "-m", "app.cli", "replay", str(recording), "--server", server.url,
+         "--key", ADMIN_KEY, "--device-id", device, "--speed", str(speed)],
+        capture_output=True, text=True, check=True, timeout=120,
+    )  # fmt: skip
+    return [json.loads(line) for line in out.stdout.splitlines()]
+
+
+def test_replay_command_repeats_positions_and_paces_by_speed(
+    new_database: Any, tmp_path: Path
+) -> None:
+    recording = tmp_path / "walk.json"
+    recording.write_text(json.dumps(batches(walk(6), 4, site="cli", device="ignored")))
+    runs, elapsed = [], []
+    for run, speed in enumerate((2.0, 0.0)):
+        home = tmp_path / f"run{run}"
+        home.mkdir()
+        server = LiveServer(database_url=new_database(), home=home, workers=1)
+        try:
+            _setup(server, "cli")
+            started = time.monotonic()
+            printed = _cli_replay(server, recording, "cli-walker", speed)
+            runs.append(sorted(_strip(printed), key=lambda p: p["t"]))
+            elapsed.append(time.monotonic() - started)
+        finally:
+            server.stop()
+    assert len(runs[0]) >= 5
+    assert {p["device_id"] for p in runs[0]} == {"cli-walker"}
+    assert runs[0] == runs[1]
+    # 5 s of measurement time at twice real time take at least 2.5 s
+    assert elapsed[0] >= 2.5
 
 
 def test_killed_worker_restarts_and_loses_no_acknowledged_batch(live_server: LiveServer) -> None:
