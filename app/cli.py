@@ -221,6 +221,7 @@ EVALUATIONS = {
     "ble-flat": "app.evaluation.ble_flat_eval",
     "uwb": "app.evaluation.uwb_eval",
     "locator": "app.evaluation.locator_eval",
+    "locator-http": "app.evaluation.locator_http",
     "fingerprint": "app.evaluation.fingerprint_eval",
 }
 

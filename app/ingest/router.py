@@ -81,7 +81,11 @@ async def ingest_locator(
     request: Request,
     state: StateDep,
     runtime: RuntimeDep,
-    wait: bool = Query(False, description="Answer after processing, with the tags' positions"),
+    wait: bool = Query(
+        False,
+        description="Answer after processing, with the positions the tags' filters emitted; "
+        "sightings stay in the reorder window, as other locators report the same moments",
+    ),
 ) -> JSONResponse:
     """Accept a locator's sightings of tags; each goes to its tag's filter."""
     raw = await _read_body(request, state.settings.max_body_bytes)

@@ -102,6 +102,9 @@ async def ingest_locator(
             version=version,
             samples={"sightings": sightings},
             wait=wait,
+            # other locators' reports of the same moments are still on their way:
+            # waiting must not cut the tag's reorder window short
+            flush=False,
         )
         futures.append(future)
     if not wait:

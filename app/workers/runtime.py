@@ -92,8 +92,12 @@ class Runtime:
         version: int,
         samples: dict[str, list[Message]],
         wait: bool,
+        flush: bool | None = None,
     ) -> tuple[str, asyncio.Future[Outcome] | None]:
         """Queue a device's samples on its shard; with ``wait`` return a future of the outcome.
+
+        ``flush`` (default: ``wait``) has the worker process the device's whole
+        reorder buffer at once instead of holding its newest samples back.
 
         Raises ApiError 429 when the device or its shard is over its bound.
         """
@@ -124,7 +128,7 @@ class Runtime:
             "device_id": device_id,
             "version": version,
             "samples": samples,
-            "flush": wait,
+            "flush": wait if flush is None else flush,
         }
         if overloaded:
             # policy "latest": park the batch; a newer one from the device replaces it

@@ -184,6 +184,21 @@ def test_locator_sightings_reach_the_tag(client: TestClient, admin: dict, site_i
     assert r.status_code == 200 and r.json()["positions"] == []
 
 
+def test_locators_reporting_the_same_moments_are_not_late(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    """Waiting on one locator's report must not close the tag's window to the others'."""
+    tag = f"{site_id}-tag"
+    for locator, times in (("L1", (T0 + 100, T0 + 900)), ("L2", (T0 + 50, T0 + 500))):
+        body = {
+            "site_id": site_id,
+            "locator_id": locator,
+            "sightings": [{"t": t, "tag_id": tag, "rssi": -60} for t in times],
+        }
+        r = client.post("/v1/ingest/locator?wait=true", json=body, headers=admin)
+        assert r.status_code == 200 and r.json()["late"] == 0, r.text
+
+
 def test_websocket_ingest_answers_each_message(client: TestClient, site_id: str) -> None:
     device = f"{site_id}-ws"
     with client.websocket_connect("/v1/ws/ingest?wait=true&key=lk_test_admin_key") as ws:
