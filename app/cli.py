@@ -54,7 +54,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app import demo
-    from app.core.bootstrap import prepare_database
+    from app.core.bootstrap import bootstrap_admin, prepare_database
     from app.core.db import make_engine, make_sessionmaker, session_scope
     from app.core.logging import configure_logging
     from app.keys.service import create_key
@@ -66,8 +66,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home": settings.home / "demo"})
     prepare_database(settings)
     engine = make_engine(settings.resolved_database_url)
-    with session_scope(make_sessionmaker(engine)) as db:
-        admin = create_key(db=db, role="admin", site_id=None, label="demo")
+    sessions = make_sessionmaker(engine)
+    bootstrap_admin(sessions=sessions, settings=settings)
+    admin = settings.admin_key
+    if not admin:
+        with session_scope(sessions) as db:
+            admin = create_key(db=db, role="admin", site_id=None, label="demo")
     engine.dispose()
     server = uvicorn.Server(
         uvicorn.Config(create_app(settings), host=settings.host, port=settings.port)
