@@ -68,7 +68,10 @@ class Settings(BaseSettings):
         default=2000, description="Samples are held this long (measurement time) to be ordered."
     )
     flush_after_s: float = Field(
-        default=1.0, description="Wall seconds of silence after which a device's buffer is flushed."
+        default=2.5,
+        description="Wall seconds of silence after which a device's buffer is flushed: longer "
+        "than the usual 1 s upload period with its jitter, so a device that keeps uploading "
+        "is never flushed between two batches.",
     )
     idle_evict_s: float = Field(
         default=300.0,
