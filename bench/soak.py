@@ -11,39 +11,34 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app import demo  # noqa: E402
-from bench.load import ADMIN, Connection, _children, _device, _rss_mb  # noqa: E402
+from bench.load import ADMIN, Connection, Tally, _children, _device, _own_server, _rss_mb  # noqa: E402
 
 
 async def _soak(
     url: str, devices: int, seconds: float, every: float, pids: list[int]
-) -> list[tuple]:
+) -> list[tuple[float, float, float, float, float, int]]:
     beacons = [
         {"xyz": f["geometry"]["coordinates"], **f["properties"]}
         for f in demo.load_map()["features"]
         if f["properties"]["kind"] == "transmitter"
     ]
     host, port = url.removeprefix("http://").split(":")
-    latencies: list[float] = []
-    errors: list[int] = []
+    tally = Tally()
     t0 = int(time.time() * 1000) - 3_600_000
     until = time.monotonic() + seconds
     tasks = [
         asyncio.create_task(
-            _device(Connection(host, int(port)), f"soak-{i}", beacons, until, latencies, errors, t0)
+            _device(Connection(host, int(port), ADMIN), f"soak-{i}", beacons, until, tally, t0)
         )
         for i in range(devices)
     ]
@@ -52,15 +47,15 @@ async def _soak(
     seen = 0
     while time.monotonic() < until:
         await asyncio.sleep(every)
-        window = np.array(latencies[seen:]) * 1000
-        seen = len(latencies)
+        window = np.array([v for _, v in tally.http[seen:]]) * 1000
+        seen = len(tally.http)
         row = (
             time.monotonic() - started,
             _rss_mb(pids),
             window.size / every,
             float(np.percentile(window, 50)) if window.size else float("nan"),
             float(np.percentile(window, 99)) if window.size else float("nan"),
-            len(errors),
+            len(tally.errors),
         )
         series.append(row)
         print(
@@ -81,41 +76,10 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--port", type=int, default=8878)
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as home:
-        env = os.environ | {"LOCUS_ADMIN_KEY": ADMIN}
-        server = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "app.cli",
-                "serve",
-                "--port",
-                str(args.port),
-                "--workers",
-                str(args.workers),
-                "--home",
-                home,
-            ],
-            cwd=ROOT,
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        url = f"http://127.0.0.1:{args.port}"
-        try:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:
-                try:
-                    if httpx.get(url + "/readyz", timeout=1).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    time.sleep(0.3)
-            demo.install(url, ADMIN)
-            pids = [server.pid, *_children(server.pid)]
-            series = asyncio.run(_soak(url, args.devices, args.minutes * 60, args.every, pids))
-        finally:
-            server.terminate()
-            server.wait(timeout=120)
+    with _own_server(args.port, args.workers, "memory") as (url, pid):
+        demo.install(url, ADMIN)
+        pids = [pid, *_children(pid)]
+        series = asyncio.run(_soak(url, args.devices, args.minutes * 60, args.every, pids))
     t = np.array([r[0] for r in series])
     rss = np.array([r[1] for r in series])
     half = t >= t[-1] / 2
