@@ -179,26 +179,31 @@ async def _watch(url: str, key: str, tally: Tally) -> None:
                 tally.ws.append((now, now - sent))
 
 
-async def _run(url: str, key: str, devices: int, seconds: float, warmup: float) -> Tally:
+def start_devices(url: str, key: str, devices: int, seconds: float, tally: Tally,
+                  prefix: str) -> list[asyncio.Task[None]]:  # fmt: skip
+    """Start K simulated devices posting at 1 Hz for ``seconds``; return their tasks."""
     beacons = [
         {"xyz": f["geometry"]["coordinates"], **f["properties"]}
         for f in demo.load_map()["features"]
         if f["properties"]["kind"] == "transmitter"
     ]
-    tally = Tally()
-    t0 = int(time.time() * 1000) - 3_600_000
     host, port = url.removeprefix("http://").split(":")
-    watcher = asyncio.create_task(_watch(url, key, tally))
-    await asyncio.sleep(0.5)
-    until = time.monotonic() + warmup + seconds
-    run = uuid.uuid4().hex[:6]
-    tasks = [
+    t0 = int(time.time() * 1000) - 3_600_000
+    until = time.monotonic() + seconds
+    return [
         asyncio.create_task(
-            _device(Connection(host, int(port), key), f"load-{run}-{i}", beacons, until, tally, t0)
+            _device(Connection(host, int(port), key), f"{prefix}-{i}", beacons, until, tally, t0)
         )
         for i in range(devices)
     ]
-    await asyncio.gather(*tasks)
+
+
+async def _run(url: str, key: str, devices: int, seconds: float, warmup: float) -> Tally:
+    tally = Tally()
+    watcher = asyncio.create_task(_watch(url, key, tally))
+    await asyncio.sleep(0.5)
+    prefix = f"load-{uuid.uuid4().hex[:6]}"
+    await asyncio.gather(*start_devices(url, key, devices, warmup + seconds, tally, prefix))
     await asyncio.sleep(0.5)
     watcher.cancel()
     return tally

@@ -29,13 +29,12 @@ sys.path.insert(0, str(ROOT))
 from app import demo  # noqa: E402
 from bench.load import (  # noqa: E402
     ADMIN,
-    Connection,
     Tally,
     _children,
-    _device,
     _dropped,
     _own_server,
     _rss_mb,
+    start_devices,
 )
 
 
@@ -43,21 +42,9 @@ async def _drive(
     url: str, key: str, devices: int, seconds: float, pids: list[int], prefix: str
 ) -> tuple[Tally, list[float]]:
     """Run the devices for ``seconds`` while sampling the server's RSS once a second."""
-    beacons = [
-        {"xyz": f["geometry"]["coordinates"], **f["properties"]}
-        for f in demo.load_map()["features"]
-        if f["properties"]["kind"] == "transmitter"
-    ]
-    host, port = url.removeprefix("http://").split(":")
     tally = Tally()
-    t0 = int(time.time() * 1000) - 3_600_000
     until = time.monotonic() + seconds
-    tasks = [
-        asyncio.create_task(
-            _device(Connection(host, int(port), key), f"{prefix}-{i}", beacons, until, tally, t0)
-        )
-        for i in range(devices)
-    ]
+    tasks = start_devices(url, key, devices, seconds, tally, prefix)
     rss = []
     while time.monotonic() < until:
         rss.append(_rss_mb(pids))

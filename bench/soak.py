@@ -21,27 +21,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app import demo  # noqa: E402
-from bench.load import ADMIN, Connection, Tally, _children, _device, _own_server, _rss_mb  # noqa: E402
+from bench.load import ADMIN, Tally, _children, _own_server, _rss_mb, start_devices  # noqa: E402
 
 
 async def _soak(
     url: str, devices: int, seconds: float, every: float, pids: list[int]
 ) -> list[tuple[float, float, float, float, float, int]]:
-    beacons = [
-        {"xyz": f["geometry"]["coordinates"], **f["properties"]}
-        for f in demo.load_map()["features"]
-        if f["properties"]["kind"] == "transmitter"
-    ]
-    host, port = url.removeprefix("http://").split(":")
     tally = Tally()
-    t0 = int(time.time() * 1000) - 3_600_000
     until = time.monotonic() + seconds
-    tasks = [
-        asyncio.create_task(
-            _device(Connection(host, int(port), ADMIN), f"soak-{i}", beacons, until, tally, t0)
-        )
-        for i in range(devices)
-    ]
+    tasks = start_devices(url, ADMIN, devices, seconds, tally, "soak")
     series = []
     started = time.monotonic()
     seen = 0
