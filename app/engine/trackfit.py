@@ -55,8 +55,26 @@ class TrackFitParams:
         when the initial heading is unknown.
     c1 : float
         C1, weight of the length changes Σ |1 - γ_i|.
+    sectors : int
+        Heading sectors per cell. The paper keeps one track per cell (1); with
+        k sectors a cell keeps the best track of each heading sector of width
+        2π / k, so tracks that differ only in where they are heading are not
+        pruned against each other.
     c2 : float
         C2, weight of the turn changes Σ |φ_i|.
+    recover : bool
+        When no track survives a link, place it by the recovery ladder rather
+        than give up (see ``RELAX_*``).
+    wide_scales, wide_turns : tuple of float
+        Γ_w and Φ_w (rad), the first rung of that ladder, costed by the same
+        C1 |1 - γ| + C2 |φ|. Physical range: on the ILC site1 training walks the
+        PDR's length over the surveyed length between waypoints runs 0.82–1.24
+        (10th–90th percentile) and its heading, after removing each walk's
+        bias, strays up to 22° (90th percentile) between waypoints: Γ_w =
+        0.7–1.3 and Φ_w = ±0.5 rad (29°) cover that, Γ and Φ do not.
+    snap_start : float
+        Largest distance (m) a start on a blocked cell is moved to the nearest
+        free cell; 0 refuses such a start.
     time_limit_s : float
         The forward pass gives up (``failed``) after this much computing time (s).
     """
@@ -77,8 +95,14 @@ class TrackFitParams:
         0.25,
     )
     first_step: float = 0.05
+    sectors: int = 1
+    cell_per_link: float = 0.0
     c1: float = 1.0
     c2: float = 1.0
+    recover: bool = True
+    wide_scales: tuple[float, ...] = (0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
+    wide_turns: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(-10, 11))
+    snap_start: float = 2.0
     time_limit_s: float = 10.0
 
 
@@ -104,6 +128,11 @@ class TrackFit:
         |S_i|, the cells holding a track after each link processed.
     failed : str or None
         Why no complete track was found; None on success.
+    relaxed : ndarray of int8, shape (k,)
+        How each link was placed: ``RELAX_NONE`` normally, else the rung of
+        the recovery ladder that placed it.
+    start_shift : float
+        Distance (m) the start was moved off a blocked cell.
     """
 
     points: np.ndarray
@@ -113,6 +142,8 @@ class TrackFit:
     direction: np.ndarray
     alive: np.ndarray
     failed: str | None = None
+    relaxed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
+    start_shift: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -143,6 +174,8 @@ class CellGrid:
     than this to any point of the cell (may be negative)."""
     safe_end: np.ndarray = field(repr=False)
     """``max(safe, 0)``, flat."""
+    sectors: int
+    """Heading sectors per cell: a DP state is (cell, sector)."""
     best: np.ndarray = field(repr=False)
     first: np.ndarray = field(repr=False)
     mark: np.ndarray = field(repr=False)
@@ -155,8 +188,11 @@ MAX_SAMPLES = 1 << 21
 """Largest number of raster samples one wall-test chunk holds in memory."""
 
 
-def cell_grid(plan: FloorPlan, cell: float, reach: float) -> CellGrid:
-    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long."""
+def cell_grid(plan: FloorPlan, cell: float, reach: float, sectors: int = 1) -> CellGrid:
+    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long.
+
+    Each cell holds ``sectors`` states, one per heading sector of width 2π / sectors.
+    """
     ny_r, nx_r = plan.shape
     free = plan.free
     border = np.r_[free[0], free[-1], free[:, 0], free[:, -1]]
@@ -183,9 +219,10 @@ def cell_grid(plan: FloorPlan, cell: float, reach: float) -> CellGrid:
         free=np.pad(free, pad, constant_values=False),
         safe=safe,
         safe_end=np.maximum(safe, np.float32(0.0)),
-        best=np.full(nx * ny, np.inf),
-        first=np.full(nx * ny, NONE, dtype=np.int64),
-        mark=np.zeros(nx * ny, dtype=bool),
+        sectors=int(sectors),
+        best=np.full(nx * ny * sectors, np.inf),
+        first=np.full(nx * ny * sectors, NONE, dtype=np.int64),
+        mark=np.zeros(nx * ny * sectors, dtype=bool),
     )
 
 
@@ -274,6 +311,9 @@ def advance(
     lengths: np.ndarray,
     rel: np.ndarray,
     cost: np.ndarray,
+    *,
+    free_end: bool = True,
+    walls: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Extend every surviving track by one link and keep the best per destination cell.
 
@@ -293,6 +333,11 @@ def advance(
         Candidate directions of the new link relative to ψ (rad).
     cost : ndarray, shape (G, A)
         Score added by each (length, direction) choice.
+    free_end : bool
+        Drop candidates ending on a blocked raster cell. Without it (the last
+        resort of a dead link) ends are only clamped into the raster.
+    walls : bool
+        Drop candidates whose move crosses a blocked cell.
 
     Returns
     -------
@@ -327,7 +372,15 @@ def advance(
     cell = uy.astype(np.int64)
     cell *= nxp
     cell += ux.astype(np.int64)
-    ok = grid.free.ravel()[cell]
+    if free_end:
+        ok = grid.free.ravel()[cell]
+    else:
+        # Keep every end inside the raster, so later moves stay in the padding.
+        ny_r, nx_r = grid.free.shape[0] - 2 * grid.pad, nxp - 2 * grid.pad
+        np.clip(ux, grid.pad, grid.pad + nx_r - 1e-6, out=ux)
+        np.clip(uy, grid.pad, grid.pad + ny_r - 1e-6, out=uy)
+        cell = uy.astype(np.int64) * nxp + ux.astype(np.int64)
+        ok = np.ones(cell.shape, dtype=bool)
     # C order: position in the surviving list increases with (k, g, a).
     k, g, a = np.nonzero(ok)
     cell, ux, uy = cell[ok], ux[ok], uy[ok]
@@ -338,12 +391,20 @@ def advance(
     ratio = grid.rcell / grid.cell
     dest = ((uy - grid.pad) * ratio).astype(np.int64) * grid.nx
     dest += ((ux - grid.pad) * ratio).astype(np.int64)
+    if grid.sectors > 1:
+        # state = cell · sectors + ⌊(θ mod 2π) / (2π / sectors)⌋
+        sector = (np.mod(ang, 2 * np.pi) * (grid.sectors / (2 * np.pi))).astype(np.int64)
+        np.minimum(sector, grid.sectors - 1, out=sector)
+        dest *= grid.sectors
+        dest += sector[k, a]
 
     # Two free discs, radius safe(ξ) around the start and safe(v) around the
     # end, cover the move when γ l < safe(ξ) + max(safe(v), 0): no sampling.
     c0 = u0.astype(np.int64)
     safe0 = grid.safe[c0[:, 1] * nxp + c0[:, 0]]
     needs = lengths[g] >= safe0[k] + grid.safe_end[cell]
+    if not walls:
+        needs[:] = False
 
     def clear(pos: np.ndarray) -> np.ndarray:
         """Sampled wall test of the candidates at positions ``pos``."""
@@ -380,31 +441,61 @@ def advance(
     )
 
 
+@dataclass(frozen=True)
+class LinkOptions:
+    """The candidates tried for one link: γ values, directions relative to ψ, their φ and cost."""
+
+    scales: np.ndarray
+    rel: np.ndarray
+    phi: np.ndarray
+    cost: np.ndarray
+
+
 def _replay(
     start: np.ndarray,
     psi0: float,
     lengths: np.ndarray,
-    rels: list[np.ndarray],
-    scales: np.ndarray,
+    options: list[LinkOptions],
     choices: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rebuild points, chosen γ and directions from the per-link choices ``g * A + a``."""
+    clamp: tuple[np.ndarray, np.ndarray] | None = None,
+    clamped: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rebuild points, chosen γ, φ and directions from the per-link choices ``g * A + a``.
+
+    Links flagged in ``clamped`` had their end clamped into the box ``clamp``
+    (lower, upper corner) as ``advance`` did without ``free_end``.
+    """
     k = choices.size
     points = np.empty((k + 1, 2))
     points[0] = start
     direction = np.empty(k)
     gamma = np.empty(k)
+    phi = np.empty(k)
     psi = psi0
     for i in range(k):
-        n_a = rels[i].size
-        g, a = divmod(int(choices[i]), n_a)
+        opt = options[i]
+        g, a = divmod(int(choices[i]), opt.rel.size)
         # ψ_i = ψ_{i-1} + turn_i + φ_i,  x_i = x_{i-1} + γ l_i (cos ψ_i, sin ψ_i)
-        psi = psi + rels[i][a]
-        step = lengths[i] * scales[g]
+        psi = psi + opt.rel[a]
+        step = lengths[i] * opt.scales[g]
         points[i + 1] = points[i] + step * np.array([np.cos(psi), np.sin(psi)])
+        if clamp is not None and clamped is not None and clamped[i]:
+            points[i + 1] = np.clip(points[i + 1], clamp[0], clamp[1])
         direction[i] = psi
-        gamma[i] = scales[g]
-    return points, gamma, direction
+        gamma[i] = opt.scales[g]
+        phi[i] = opt.phi[a]
+    return points, gamma, phi, direction
+
+
+RELAX_NONE = 0
+"""The link was placed with Γ and Φ, clear of every wall."""
+RELAX_WIDENED = 1
+"""No track survived the link with Γ and Φ: it was placed with the wider Γ_w and Φ_w."""
+RELAX_CROSSED = 2
+"""Not even Γ_w and Φ_w placed it: the link crosses a wall (Γ, Φ; its end is free)."""
+RELAX_DEAD_RECKONED = 3
+"""No candidate even ended on free space (the walker is where the plan says nobody
+can be): the link keeps its measured length and turn, walls ignored."""
 
 
 def fit_track(
@@ -424,7 +515,9 @@ def fit_track(
     plan : FloorPlan
         Free space; no fitted link crosses a blocked raster cell.
     start : ndarray, shape (2,)
-        x_0 (m), the first point of the track; must lie on a free cell.
+        x_0 (m), the first point of the track. A start on a blocked cell (a
+        surveyed or radio fix a little inside a barrier) is moved to the
+        nearest free cell's centre when that is within ``params.snap_start``.
     lengths : ndarray, shape (n,)
         Link lengths l_i (m), non-negative.
     turns : ndarray, shape (n,)
@@ -435,15 +528,17 @@ def fit_track(
         None, the first link tries every direction of [-π, π) in steps of
         ``first_step`` at no cost, as in the paper.
     params : TrackFitParams, optional
-        Γ, Φ, grid, weights and time limit.
+        Γ, Φ, grid, weights, recovery sets and time limit.
     clock : callable
         Seconds counter used for the time limit.
 
     Returns
     -------
     TrackFit
-        The fitted track, or with ``failed`` set and the best partial track
-        when the start is blocked, no track survives a link, or time runs out.
+        The fitted track. A link no track survives is placed by the recovery
+        steps of ``TrackFit.relaxed`` (with ``params.recover``); ``failed``
+        is set, with the best partial track, when the start is blocked beyond
+        ``snap_start``, a link dies without recovery, or time runs out.
     """
     p = params or TrackFitParams()
     t0 = clock()
@@ -454,44 +549,82 @@ def fit_track(
         raise ValueError("lengths and turns must have the same length")
     if not (np.all(np.isfinite(lengths)) and np.all(lengths >= 0) and np.all(np.isfinite(turns))):
         raise ValueError("lengths must be finite and non-negative, turns finite")
-    if p.grid <= 0 or p.first_step <= 0 or not p.scales or not p.turns:
-        raise ValueError("grid and first_step must be positive, scales and turns non-empty")
+    if p.grid <= 0 or p.first_step <= 0 or not p.scales or not p.turns or p.sectors < 1:
+        raise ValueError(
+            "grid and first_step must be positive, sectors at least 1, scales and turns non-empty"
+        )
 
-    scales = _ordered(p.scales, 1.0)
-    phis = _ordered(p.turns, 0.0)
-    # C1 |1 - γ| + C2 |φ| per (γ, φ)
-    cost = p.c1 * np.abs(1.0 - scales)[:, None] + p.c2 * np.abs(phis)[None, :]
+    def options_for(scale_set: tuple[float, ...], turn_set: tuple[float, ...]) -> list[LinkOptions]:
+        """Candidates of every link for one (Γ, Φ) pair."""
+        scales = _ordered(scale_set, 1.0)
+        phis = _ordered(turn_set, 0.0)
+        # C1 |1 - γ| + C2 |φ| per (γ, φ)
+        cost = p.c1 * np.abs(1.0 - scales)[:, None] + p.c2 * np.abs(phis)[None, :]
+        out = []
+        for i in range(lengths.size):
+            if i == 0 and heading is None:
+                # θ_k = k Δθ ∈ [-π, π), free of charge; 0 and every multiple of the
+                # step are tried, so a track on the Φ lattice can be found exactly.
+                ks = np.arange(-np.floor(np.pi / p.first_step), np.ceil(np.pi / p.first_step))
+                theta = p.first_step * ks
+                theta = theta[(theta >= -np.pi) & (theta < np.pi)]
+                theta = theta[np.lexsort((theta, np.abs(theta)))]
+                free_cost = np.repeat(p.c1 * np.abs(1.0 - scales)[:, None], theta.size, axis=1)
+                out.append(LinkOptions(scales, theta, np.full(theta.size, np.nan), free_cost))
+            else:
+                out.append(LinkOptions(scales, turns[i] + phis, phis, cost))
+        return out
+
+    normal = options_for(p.scales, p.turns)
+    wide = options_for(p.wide_scales or p.scales, p.wide_turns or p.turns)
     n = lengths.size
-
-    rels: list[np.ndarray] = []
-    costs: list[np.ndarray] = []
-    for i in range(n):
-        if i == 0 and heading is None:
-            # θ_k = k Δθ ∈ [-π, π), free of charge; 0 and every multiple of the
-            # step are tried, so a track on the Φ lattice can be found exactly.
-            ks = np.arange(-np.floor(np.pi / p.first_step), np.ceil(np.pi / p.first_step))
-            theta = p.first_step * ks
-            theta = theta[(theta >= -np.pi) & (theta < np.pi)]
-            rels.append(theta[np.lexsort((theta, np.abs(theta)))])
-            costs.append(np.repeat(p.c1 * np.abs(1.0 - scales)[:, None], theta.size, axis=1))
-        else:
-            rels.append(turns[i] + phis)
-            costs.append(cost)
     psi0 = 0.0 if heading is None else float(heading)
+    used: list[LinkOptions] = []
+    relaxed: list[int] = []
+    x0 = start
 
     def result(choices: np.ndarray, score: float, alive: list[int], failed: str | None) -> TrackFit:
-        points, gamma, direction = _replay(start, psi0, lengths, rels, scales, choices)
-        phi = np.array([phis[int(c) % phis.size] for c in choices])
-        if heading is None and choices.size:
-            phi[0] = np.nan
-        return TrackFit(points, float(score), gamma, phi, direction, np.array(alive), failed)
+        k = choices.size
+        how = np.array(relaxed[:k], dtype=np.int8)
+        lo, hi = plan.bounds[:2], plan.bounds[2:]
+        points, gamma, phi, direction = _replay(
+            x0,
+            psi0,
+            lengths,
+            used,
+            choices,
+            (np.array(lo), np.array(hi) - 1e-6 * plan.cell),
+            how == RELAX_DEAD_RECKONED,
+        )
+        return TrackFit(
+            points,
+            float(score),
+            gamma,
+            phi,
+            direction,
+            np.array(alive),
+            failed,
+            relaxed=how,
+            start_shift=float(np.hypot(*(x0 - start))),
+        )
 
     # Longest move tested: the longest candidate link.
-    grid = cell_grid(plan, p.grid, float(scales.max() * lengths.max()) if n else 0.0)
+    longest = max(max(p.scales), max(p.wide_scales or p.scales), 1.0)
+    cell = p.grid
+    if p.cell_per_link > 0 and n:
+        # A link shorter than the cell mostly ends in the cell it started from,
+        # where only the cheapest track survives: the DP turns greedy. Cells no
+        # larger than the typical link keep its alternatives apart.
+        cell = min(cell, p.cell_per_link * float(np.median(lengths)))
+        cell = max(cell, plan.cell)
+    grid = cell_grid(plan, cell, longest * float(lengths.max()) if n else 0.0, p.sectors)
     if not bool(plan.is_free(start)):
-        return result(np.zeros(0, np.int64), 0.0, [], "start is not in free space")
+        snapped = plan.project(start)
+        if p.snap_start <= 0 or float(np.hypot(*(snapped - start))) > p.snap_start:
+            return result(np.zeros(0, np.int64), 0.0, [], "start is not in free space")
+        x0 = snapped
 
-    xi = start[None, :]
+    xi = x0[None, :]
     psi = np.array([psi0])
     f = np.zeros(1)
     preds: list[np.ndarray] = []
@@ -499,13 +632,41 @@ def fit_track(
     alive: list[int] = []
     failed = None
     for i in range(n):
-        cells, xi2, psi2, f2, pred, choice = advance(
-            grid, xi, psi, f, scales * lengths[i], rels[i], costs[i]
-        )
+        # Γ and Φ; then the recovery ladder of a dead link, each rung tried only
+        # when the one before left no track: Γ_w and Φ_w; walls ignored with
+        # the end on free space; pure dead reckoning.
+        ladder = [(RELAX_NONE, normal[i], True, True)]
+        if p.recover:
+            # γ = 1, φ = 0 (any direction for a first link of unknown heading)
+            rel = normal[i].rel if heading is None and i == 0 else turns[i : i + 1]
+            phi = normal[i].phi if heading is None and i == 0 else np.zeros(1)
+            straight = LinkOptions(np.ones(1), rel, phi, np.zeros((1, rel.size)))
+            ladder += [
+                (RELAX_WIDENED, wide[i], True, True),
+                (RELAX_CROSSED, normal[i], True, False),
+                (RELAX_DEAD_RECKONED, straight, False, False),
+            ]
+        for rung in ladder:
+            _, opt, free_end, walls = rung
+            cells, xi2, psi2, f2, pred, choice = advance(
+                grid,
+                xi,
+                psi,
+                f,
+                opt.scales * lengths[i],
+                opt.rel,
+                opt.cost,
+                free_end=free_end,
+                walls=walls,
+            )
+            if cells.size:
+                break
         alive.append(int(cells.size))
         if cells.size == 0:
             failed = f"no track survives link {i + 1} of {n}"
             break
+        used.append(opt)
+        relaxed.append(rung[0])
         xi, psi, f = xi2, psi2, f2
         preds.append(pred.astype(np.int32))
         choices.append(choice.astype(np.int32))

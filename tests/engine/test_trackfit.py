@@ -264,7 +264,8 @@ def test_fit_equals_the_loop_reference(seed: int, known_heading: bool, grid: flo
     lengths *= rng.uniform(0.9, 1.1, lengths.size)
     turns += rng.normal(0.0, 0.05, turns.size)
     heading = float(direction[0] + rng.normal(0.0, 0.05)) if known_heading else None
-    params = TrackFitParams(grid=grid, first_step=0.1)
+    # The paper's algorithm: a link no track survives ends the fit.
+    params = TrackFitParams(grid=grid, first_step=0.1, recover=False)
     fit = fit_track(PLAN, truth[0], lengths, turns, heading=heading, params=params)
     points, score, counts, placed = reference_fit(PLAN, truth[0], lengths, turns, heading, params)
     assert fit.alive.tolist() == counts
@@ -363,13 +364,14 @@ def base_turns() -> tuple[float, ...]:
 
 
 def test_failures_return_the_best_partial_track() -> None:
-    # A 20 m link fits nowhere in a 12 × 8 m plan.
-    fit = fit_track(PLAN, ROUTE[0], np.array([1.5, 20.0]), np.zeros(2), heading=0.0)
+    # A 20 m link fits nowhere in a 12 × 8 m plan; without recovery the fit stops there.
+    strict = TrackFitParams(recover=False, snap_start=0.0)
+    fit = fit_track(PLAN, ROUTE[0], np.array([1.5, 20.0]), np.zeros(2), heading=0.0, params=strict)
     assert fit.failed == "no track survives link 2 of 2"
     np.testing.assert_allclose(fit.points, ROUTE[:2], atol=1e-9)
     assert fit.alive.tolist()[-1] == 0
 
-    blocked = fit_track(PLAN, np.array([5.0, 2.0]), np.ones(2), np.zeros(2))
+    blocked = fit_track(PLAN, np.array([5.0, 2.0]), np.ones(2), np.zeros(2), params=strict)
     assert blocked.failed == "start is not in free space"
     assert blocked.points.shape == (1, 2)
 
