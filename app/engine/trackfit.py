@@ -55,11 +55,15 @@ class TrackFitParams:
         when the initial heading is unknown.
     c1 : float
         C1, weight of the length changes Σ |1 - γ_i|.
-    sectors : int
-        Heading sectors per cell. The paper keeps one track per cell (1); with
-        k sectors a cell keeps the best track of each heading sector of width
-        2π / k, so tracks that differ only in where they are heading are not
-        pruned against each other.
+    cell_per_link : float
+        The DP cell is at most this many median link lengths (and at least one
+        raster cell); 0 keeps ``grid`` whatever the links. A link shorter than
+        the cell mostly ends in the cell it started from, where only the
+        cheapest track survives: the DP keeps one or two tracks and turns
+        greedy (on site1 per-step links of 0.66 m at a 1 m grid kept 1-8 cells
+        alive and died at a wall in 70 of 114 test walks). The paper's 1 m grid
+        suits its links of a metre or more; for shorter links the cell shrinks
+        with them, at the cost of more cells alive.
     c2 : float
         C2, weight of the turn changes Σ |φ_i|.
     recover : bool
@@ -75,6 +79,8 @@ class TrackFitParams:
     snap_start : float
         Largest distance (m) a start on a blocked cell is moved to the nearest
         free cell; 0 refuses such a start.
+    spread_margin : float
+        Score margin of the tracks ``TrackFit.spread`` measures (one Φ step).
     time_limit_s : float
         The forward pass gives up (``failed``) after this much computing time (s).
     """
@@ -95,14 +101,14 @@ class TrackFitParams:
         0.25,
     )
     first_step: float = 0.05
-    sectors: int = 1
-    cell_per_link: float = 0.0
+    cell_per_link: float = 1.0
     c1: float = 1.0
     c2: float = 1.0
     recover: bool = True
     wide_scales: tuple[float, ...] = (0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
     wide_turns: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(-10, 11))
     snap_start: float = 2.0
+    spread_margin: float = 0.05
     time_limit_s: float = 10.0
 
 
@@ -133,6 +139,12 @@ class TrackFit:
         the recovery ladder that placed it.
     start_shift : float
         Distance (m) the start was moved off a blocked cell.
+    spread : float
+        Largest distance (m) from the fitted last point to the last point of
+        any other surviving track scoring within ``spread_margin`` of it. The
+        score cannot tell those tracks apart: a large spread (typically with
+        the heading unknown in open halls, where any rotation fits) says the
+        plan did not determine the fit.
     """
 
     points: np.ndarray
@@ -144,6 +156,7 @@ class TrackFit:
     failed: str | None = None
     relaxed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
     start_shift: float = 0.0
+    spread: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -174,8 +187,6 @@ class CellGrid:
     than this to any point of the cell (may be negative)."""
     safe_end: np.ndarray = field(repr=False)
     """``max(safe, 0)``, flat."""
-    sectors: int
-    """Heading sectors per cell: a DP state is (cell, sector)."""
     best: np.ndarray = field(repr=False)
     first: np.ndarray = field(repr=False)
     mark: np.ndarray = field(repr=False)
@@ -188,11 +199,8 @@ MAX_SAMPLES = 1 << 21
 """Largest number of raster samples one wall-test chunk holds in memory."""
 
 
-def cell_grid(plan: FloorPlan, cell: float, reach: float, sectors: int = 1) -> CellGrid:
-    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long.
-
-    Each cell holds ``sectors`` states, one per heading sector of width 2π / sectors.
-    """
+def cell_grid(plan: FloorPlan, cell: float, reach: float) -> CellGrid:
+    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long."""
     ny_r, nx_r = plan.shape
     free = plan.free
     border = np.r_[free[0], free[-1], free[:, 0], free[:, -1]]
@@ -219,10 +227,9 @@ def cell_grid(plan: FloorPlan, cell: float, reach: float, sectors: int = 1) -> C
         free=np.pad(free, pad, constant_values=False),
         safe=safe,
         safe_end=np.maximum(safe, np.float32(0.0)),
-        sectors=int(sectors),
-        best=np.full(nx * ny * sectors, np.inf),
-        first=np.full(nx * ny * sectors, NONE, dtype=np.int64),
-        mark=np.zeros(nx * ny * sectors, dtype=bool),
+        best=np.full(nx * ny, np.inf),
+        first=np.full(nx * ny, NONE, dtype=np.int64),
+        mark=np.zeros(nx * ny, dtype=bool),
     )
 
 
@@ -335,7 +342,7 @@ def advance(
         Score added by each (length, direction) choice.
     free_end : bool
         Drop candidates ending on a blocked raster cell. Without it (the last
-        resort of a dead link) ends are only clamped into the raster.
+        resort of a dead link) only ends off the raster are dropped.
     walls : bool
         Drop candidates whose move crosses a blocked cell.
 
@@ -375,12 +382,10 @@ def advance(
     if free_end:
         ok = grid.free.ravel()[cell]
     else:
-        # Keep every end inside the raster, so later moves stay in the padding.
+        # Anywhere on the raster (so later moves stay in the padding): nobody
+        # walks off the floor plan's extent.
         ny_r, nx_r = grid.free.shape[0] - 2 * grid.pad, nxp - 2 * grid.pad
-        np.clip(ux, grid.pad, grid.pad + nx_r - 1e-6, out=ux)
-        np.clip(uy, grid.pad, grid.pad + ny_r - 1e-6, out=uy)
-        cell = uy.astype(np.int64) * nxp + ux.astype(np.int64)
-        ok = np.ones(cell.shape, dtype=bool)
+        ok = (ux >= grid.pad) & (ux < grid.pad + nx_r) & (uy >= grid.pad) & (uy < grid.pad + ny_r)
     # C order: position in the surviving list increases with (k, g, a).
     k, g, a = np.nonzero(ok)
     cell, ux, uy = cell[ok], ux[ok], uy[ok]
@@ -391,12 +396,6 @@ def advance(
     ratio = grid.rcell / grid.cell
     dest = ((uy - grid.pad) * ratio).astype(np.int64) * grid.nx
     dest += ((ux - grid.pad) * ratio).astype(np.int64)
-    if grid.sectors > 1:
-        # state = cell · sectors + ⌊(θ mod 2π) / (2π / sectors)⌋
-        sector = (np.mod(ang, 2 * np.pi) * (grid.sectors / (2 * np.pi))).astype(np.int64)
-        np.minimum(sector, grid.sectors - 1, out=sector)
-        dest *= grid.sectors
-        dest += sector[k, a]
 
     # Two free discs, radius safe(ξ) around the start and safe(v) around the
     # end, cover the move when γ l < safe(ξ) + max(safe(v), 0): no sampling.
@@ -457,14 +456,8 @@ def _replay(
     lengths: np.ndarray,
     options: list[LinkOptions],
     choices: np.ndarray,
-    clamp: tuple[np.ndarray, np.ndarray] | None = None,
-    clamped: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rebuild points, chosen γ, φ and directions from the per-link choices ``g * A + a``.
-
-    Links flagged in ``clamped`` had their end clamped into the box ``clamp``
-    (lower, upper corner) as ``advance`` did without ``free_end``.
-    """
+    """Rebuild points, chosen γ, φ and directions from the per-link choices ``g * A + a``."""
     k = choices.size
     points = np.empty((k + 1, 2))
     points[0] = start
@@ -479,8 +472,6 @@ def _replay(
         psi = psi + opt.rel[a]
         step = lengths[i] * opt.scales[g]
         points[i + 1] = points[i] + step * np.array([np.cos(psi), np.sin(psi)])
-        if clamp is not None and clamped is not None and clamped[i]:
-            points[i + 1] = np.clip(points[i + 1], clamp[0], clamp[1])
         direction[i] = psi
         gamma[i] = opt.scales[g]
         phi[i] = opt.phi[a]
@@ -495,7 +486,8 @@ RELAX_CROSSED = 2
 """Not even Γ_w and Φ_w placed it: the link crosses a wall (Γ, Φ; its end is free)."""
 RELAX_DEAD_RECKONED = 3
 """No candidate even ended on free space (the walker is where the plan says nobody
-can be): the link keeps its measured length and turn, walls ignored."""
+can be): the link keeps its measured length and turn, walls ignored; only an
+end off the plan's raster is refused (then the fit fails at that link)."""
 
 
 def fit_track(
@@ -549,10 +541,8 @@ def fit_track(
         raise ValueError("lengths and turns must have the same length")
     if not (np.all(np.isfinite(lengths)) and np.all(lengths >= 0) and np.all(np.isfinite(turns))):
         raise ValueError("lengths must be finite and non-negative, turns finite")
-    if p.grid <= 0 or p.first_step <= 0 or not p.scales or not p.turns or p.sectors < 1:
-        raise ValueError(
-            "grid and first_step must be positive, sectors at least 1, scales and turns non-empty"
-        )
+    if p.grid <= 0 or p.first_step <= 0 or not p.scales or not p.turns:
+        raise ValueError("grid and first_step must be positive, scales and turns non-empty")
 
     def options_for(scale_set: tuple[float, ...], turn_set: tuple[float, ...]) -> list[LinkOptions]:
         """Candidates of every link for one (Γ, Φ) pair."""
@@ -583,19 +573,12 @@ def fit_track(
     relaxed: list[int] = []
     x0 = start
 
-    def result(choices: np.ndarray, score: float, alive: list[int], failed: str | None) -> TrackFit:
+    def result(
+        choices: np.ndarray, score: float, alive: list[int], failed: str | None, spread: float = 0.0
+    ) -> TrackFit:
         k = choices.size
         how = np.array(relaxed[:k], dtype=np.int8)
-        lo, hi = plan.bounds[:2], plan.bounds[2:]
-        points, gamma, phi, direction = _replay(
-            x0,
-            psi0,
-            lengths,
-            used,
-            choices,
-            (np.array(lo), np.array(hi) - 1e-6 * plan.cell),
-            how == RELAX_DEAD_RECKONED,
-        )
+        points, gamma, phi, direction = _replay(x0, psi0, lengths, used, choices)
         return TrackFit(
             points,
             float(score),
@@ -606,6 +589,7 @@ def fit_track(
             failed,
             relaxed=how,
             start_shift=float(np.hypot(*(x0 - start))),
+            spread=spread,
         )
 
     # Longest move tested: the longest candidate link.
@@ -617,7 +601,7 @@ def fit_track(
         # larger than the typical link keep its alternatives apart.
         cell = min(cell, p.cell_per_link * float(np.median(lengths)))
         cell = max(cell, plan.cell)
-    grid = cell_grid(plan, cell, longest * float(lengths.max()) if n else 0.0, p.sectors)
+    grid = cell_grid(plan, cell, longest * float(lengths.max()) if n else 0.0)
     if not bool(plan.is_free(start)):
         snapped = plan.project(start)
         if p.snap_start <= 0 or float(np.hypot(*(snapped - start))) > p.snap_start:
@@ -677,9 +661,13 @@ def fit_track(
     # Backward pass: s*_{i-1} = ζ_i(s*_i) from the best last cell (lowest cell on ties).
     j = int(np.argmin(f))
     score = float(f[j])
+    # Ends of the other tracks that score within the margin: as good an
+    # explanation of the input, so the fit is only as certain as they agree.
+    near = f <= score + p.spread_margin
+    spread = float(np.hypot(*(xi[near] - xi[j]).T).max())
     k = len(choices)
     path = np.empty(k, dtype=np.int64)
     for i in range(k - 1, -1, -1):
         path[i] = choices[i][j]
         j = int(preds[i][j])
-    return result(path, score, alive, failed)
+    return result(path, score, alive, failed, spread)

@@ -294,7 +294,6 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--validation-fraction", type=float, default=0.2)
     parser.add_argument("--grid", type=float, default=TrackFitParams().grid)
-    parser.add_argument("--sectors", type=int, default=TrackFitParams().sectors)
     parser.add_argument("--cell-per-link", type=float, default=TrackFitParams().cell_per_link)
     parser.add_argument("--time-limit", type=float, default=30.0)
     parser.add_argument("--plots", type=Path, default=None, help="write one PNG per walk here")
@@ -303,7 +302,6 @@ def main(argv: list[str] | None = None) -> None:
 
     params = TrackFitParams(
         grid=args.grid,
-        sectors=args.sectors,
         cell_per_link=args.cell_per_link,
         time_limit_s=args.time_limit,
     )
@@ -321,7 +319,7 @@ def main(argv: list[str] | None = None) -> None:
     results: list[WalkResult] = []
     print(
         f"site {args.site.name}: {len(test)} {args.split} walks, grid {args.grid} m, "
-        f"{args.sectors} heading sectors, raster "
+        f"cell per link {args.cell_per_link}, raster "
         f"{RASTER_CELL_M} m, merge tolerance {MERGE_TOLERANCE_M} m"
     )
     if not args.quiet:
