@@ -139,6 +139,9 @@ class TrackFit:
         the recovery ladder that placed it.
     start_shift : float
         Distance (m) the start was moved off a blocked cell.
+    cell : float
+        Side (m) of the DP cells used: ``grid``, or less for short links
+        (``cell_per_link``).
     spread : float
         Largest distance (m) from the fitted last point to the last point of
         any other surviving track scoring within ``spread_margin`` of it. The
@@ -157,6 +160,7 @@ class TrackFit:
     relaxed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
     start_shift: float = 0.0
     spread: float = 0.0
+    cell: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -590,6 +594,7 @@ def fit_track(
             relaxed=how,
             start_shift=float(np.hypot(*(x0 - start))),
             spread=spread,
+            cell=cell,
         )
 
     # Longest move tested: the longest candidate link.

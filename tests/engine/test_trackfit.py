@@ -501,6 +501,8 @@ def test_links_shorter_than_the_grid_get_cells_no_larger_than_a_link() -> None:
         PLAN, dense[0], lengths / 1.1, turns, heading=heading, params=TrackFitParams(recover=False)
     )
     assert fit.failed is None
+    assert stuck.cell == 1.0
+    assert fit.cell == pytest.approx(np.median(lengths / 1.1))
     assert fit.alive.max() > 2
     assert PLAN.segment_free(fit.points[:-1], fit.points[1:]).all()
     assert fit.points[-1, 0] > 6.0 and fit.points[-1, 1] > 2.0
