@@ -75,6 +75,8 @@ class WalkResult:
     seconds: float
     relaxed: int = 0
     """Links placed by the fitter's recovery ladder (no track survived them)."""
+    spread: float = 0.0
+    """How far apart (m) equally good fits end (``TrackFit.spread``)."""
 
 
 def raw_track(
@@ -165,8 +167,8 @@ def position_at(t_points: np.ndarray, xy: np.ndarray, t: np.ndarray) -> np.ndarr
 
 def fit_walk(
     plan: FloorPlan, raw: RawTrack, links: str, heading: str, params: TrackFitParams
-) -> tuple[np.ndarray, np.ndarray, str | None, int, float, int]:
-    """Fit one raw track; return step points, times, failure, link count, seconds, relaxed links."""
+) -> tuple[np.ndarray, np.ndarray, str | None, int, float, int, float]:
+    """Fit one raw track: step points, times, failure, links, seconds, relaxed links, spread."""
     vertex = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
     lengths, turns, direction = as_links(raw.xy[vertex])
     t0 = time.perf_counter()
@@ -182,7 +184,7 @@ def fit_walk(
     seconds = time.perf_counter() - t0
     pts = carry_steps(raw.xy, vertex, fit.points)
     relaxed = int(np.count_nonzero(fit.relaxed))
-    return pts, raw.t[: len(pts)], fit.failed, int(lengths.size), seconds, relaxed
+    return pts, raw.t[: len(pts)], fit.failed, int(lengths.size), seconds, relaxed, fit.spread
 
 
 def evaluate_walk(
@@ -200,7 +202,7 @@ def evaluate_walk(
     results, tracks = [], {}
     for links in LINK_MODES:
         for heading in HEADING_MODES:
-            pts, t_pts, failed, n_links, seconds, relaxed = fit_walk(
+            pts, t_pts, failed, n_links, seconds, relaxed, spread = fit_walk(
                 plan, raw, links, heading, params
             )
             tracks[(links, heading)] = pts
@@ -209,7 +211,17 @@ def evaluate_walk(
             err = np.linalg.norm(position_at(fit_t, fitted, t_eval) - truth, axis=1)
             results.append(
                 WalkResult(
-                    walk_id, floor, links, heading, n_links, raw_err, err, failed, seconds, relaxed
+                    walk_id,
+                    floor,
+                    links,
+                    heading,
+                    n_links,
+                    raw_err,
+                    err,
+                    failed,
+                    seconds,
+                    relaxed,
+                    spread,
                 )
             )
     return results, tracks
@@ -255,7 +267,8 @@ def summarize(results: list[WalkResult]) -> str:
     lines = [
         f"{'links':<7} {'heading':<8} {'walks':>5} {'failed':>6} {'raw mean':>9} "
         f"{'fit mean':>9} {'raw med':>8} {'fit med':>8} {'ok: raw':>8} {'ok: fit':>8} "
-        f"{'walk fit<raw':>12} {'s/fit med':>9} {'s/fit max':>9} {'relaxed':>7}"
+        f"{'walk fit<raw':>12} {'s/fit med':>9} {'s/fit max':>9} {'relaxed':>7} "
+        f"{'spread med':>10}"
     ]
     for links in LINK_MODES:
         for heading in HEADING_MODES:
@@ -275,7 +288,7 @@ def summarize(results: list[WalkResult]) -> str:
                 f"{fit.mean():>9.2f} {np.median(raw):>8.2f} {np.median(fit):>8.2f} "
                 f"{ok_raw.mean() if ok else np.nan:>8.2f} {ok_fit.mean() if ok else np.nan:>8.2f} "
                 f"{better:>5}/{len(rs):<6} {np.median(secs):>9.3f} {secs.max():>9.3f} "
-                f"{relaxed:>7}"
+                f"{relaxed:>7} {np.median([r.spread for r in rs]):>10.2f}"
             )
     return "\n".join(lines)
 
@@ -369,7 +382,8 @@ def main(argv: list[str] | None = None) -> None:
             )
     print()
     print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
-    print("relaxed: walks with a link placed by the fitter's recovery ladder")
+    print("relaxed: walks with a link placed by the fitter's recovery ladder; spread: how far")
+    print("apart (m) the fits scoring within one Φ step of the best end (ambiguity)")
     print(summarize(results))
 
 
