@@ -18,6 +18,15 @@ final cell gives the fitted points. Only reachable free cells are ever alive,
 so a link costs O(|S_i| |Γ| |Φ|) with |S_i| the cells the first i links can
 reach, bounded by the walkable area divided by the cell area.
 
+Two departures from the paper, both for real phone tracks (site1): the DP
+cell shrinks to the median link length when links are shorter than the grid
+(``cell_per_link``; per-step links otherwise leave the DP one track per cell
+and it turns greedy), and a link no track survives is not the end of the fit:
+it is placed by a recovery ladder (wider Γ_w and Φ_w; then crossing a wall
+with a free end, for doors the map lacks; then dead reckoning, for walkers
+where the map says nobody can be) and flagged in ``TrackFit.relaxed``.
+``recover=False, cell_per_link=0`` is the paper's algorithm.
+
 Walls are tested on the ``FloorPlan`` raster: a candidate link ending on a
 blocked cell is dropped by one gather; a link shorter than the clearance at
 its start (less the raster's cell diagonal) cannot cross anything; only the
