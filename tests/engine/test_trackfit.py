@@ -269,7 +269,7 @@ def test_fit_equals_the_loop_reference(seed: int, known_heading: bool, grid: flo
     turns += rng.normal(0.0, 0.05, turns.size)
     heading = float(direction[0] + rng.normal(0.0, 0.05)) if known_heading else None
     # The paper's algorithm: a link no track survives ends the fit.
-    params = TrackFitParams(grid=grid, first_step=0.1, recover=False)
+    params = TrackFitParams(grid=grid, first_step=0.1, recover=False, cell_per_link=0.0)
     fit = fit_track(PLAN, truth[0], lengths, turns, heading=heading, params=params)
     points, score, counts, placed = reference_fit(PLAN, truth[0], lengths, turns, heading, params)
     assert fit.alive.tolist() == counts
