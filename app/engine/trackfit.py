@@ -18,6 +18,15 @@ final cell gives the fitted points. Only reachable free cells are ever alive,
 so a link costs O(|S_i| |Γ| |Φ|) with |S_i| the cells the first i links can
 reach, bounded by the walkable area divided by the cell area.
 
+Two departures from the paper, both for real phone tracks (site1): the DP
+cell shrinks to the median link length when links are shorter than the grid
+(``cell_per_link``; per-step links otherwise leave the DP one track per cell
+and it turns greedy), and a link no track survives is not the end of the fit:
+it is placed by a recovery ladder (wider Γ_w and Φ_w; then crossing a wall
+with a free end, for doors the map lacks; then dead reckoning, for walkers
+where the map says nobody can be) and flagged in ``TrackFit.relaxed``.
+``recover=False, cell_per_link=0`` is the paper's algorithm.
+
 Walls are tested on the ``FloorPlan`` raster: a candidate link ending on a
 blocked cell is dropped by one gather; a link shorter than the clearance at
 its start (less the raster's cell diagonal) cannot cross anything; only the
@@ -55,8 +64,37 @@ class TrackFitParams:
         when the initial heading is unknown.
     c1 : float
         C1, weight of the length changes Σ |1 - γ_i|.
+    cell_per_link : float
+        The DP cell is at most this many median link lengths (and at least one
+        raster cell); 0 keeps ``grid`` whatever the links. A link shorter than
+        the cell mostly ends in the cell it started from, where only the
+        cheapest track survives: the DP keeps one or two tracks and turns
+        greedy (on site1 per-step links of 0.66 m at a 1 m grid kept 1-8 cells
+        alive and died at a wall in 70 of 114 test walks). The paper's 1 m grid
+        suits its links of a metre or more; for shorter links the cell shrinks
+        with them, at the cost of more cells alive. On the site1 validation
+        walks (per-step links, heading known) the mean error was 4.57 m at 0
+        (raw 3.41 m), 3.61 m at 1, 3.15 m at 1/√2 (the cell whose diagonal is
+        a link, which every link leaves); 1/√2 costs about 2.5 times the time
+        and takes a 171-step track on the largest floor past the 1 s budget,
+        so the default is 1.
     c2 : float
         C2, weight of the turn changes Σ |φ_i|.
+    recover : bool
+        When no track survives a link, place it by the recovery ladder rather
+        than give up (see ``RELAX_*``).
+    wide_scales, wide_turns : tuple of float
+        Γ_w and Φ_w (rad), the first rung of that ladder, costed by the same
+        C1 |1 - γ| + C2 |φ|. Physical range: on the ILC site1 training walks the
+        PDR's length over the surveyed length between waypoints runs 0.82–1.24
+        (10th–90th percentile) and its heading, after removing each walk's
+        bias, strays up to 22° (90th percentile) between waypoints: Γ_w =
+        0.7–1.3 and Φ_w = ±0.5 rad (29°) cover that, Γ and Φ do not.
+    snap_start : float
+        Largest distance (m) a start on a blocked cell is moved to the nearest
+        free cell; 0 refuses such a start.
+    spread_margin : float
+        Score margin of the tracks ``TrackFit.spread`` measures (one Φ step).
     time_limit_s : float
         The forward pass gives up (``failed``) after this much computing time (s).
     """
@@ -77,8 +115,14 @@ class TrackFitParams:
         0.25,
     )
     first_step: float = 0.05
+    cell_per_link: float = 1.0
     c1: float = 1.0
     c2: float = 1.0
+    recover: bool = True
+    wide_scales: tuple[float, ...] = (0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
+    wide_turns: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(-10, 11))
+    snap_start: float = 2.0
+    spread_margin: float = 0.05
     time_limit_s: float = 10.0
 
 
@@ -104,6 +148,20 @@ class TrackFit:
         |S_i|, the cells holding a track after each link processed.
     failed : str or None
         Why no complete track was found; None on success.
+    relaxed : ndarray of int8, shape (k,)
+        How each link was placed: ``RELAX_NONE`` normally, else the rung of
+        the recovery ladder that placed it.
+    start_shift : float
+        Distance (m) the start was moved off a blocked cell.
+    cell : float
+        Side (m) of the DP cells used: ``grid``, or less for short links
+        (``cell_per_link``).
+    spread : float
+        Largest distance (m) from the fitted last point to the last point of
+        any other surviving track scoring within ``spread_margin`` of it. The
+        score cannot tell those tracks apart: a large spread (typically with
+        the heading unknown in open halls, where any rotation fits) says the
+        plan did not determine the fit.
     """
 
     points: np.ndarray
@@ -113,6 +171,10 @@ class TrackFit:
     direction: np.ndarray
     alive: np.ndarray
     failed: str | None = None
+    relaxed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
+    start_shift: float = 0.0
+    spread: float = 0.0
+    cell: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -274,6 +336,9 @@ def advance(
     lengths: np.ndarray,
     rel: np.ndarray,
     cost: np.ndarray,
+    *,
+    free_end: bool = True,
+    walls: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Extend every surviving track by one link and keep the best per destination cell.
 
@@ -293,6 +358,11 @@ def advance(
         Candidate directions of the new link relative to ψ (rad).
     cost : ndarray, shape (G, A)
         Score added by each (length, direction) choice.
+    free_end : bool
+        Drop candidates ending on a blocked raster cell. Without it (the last
+        resort of a dead link) only ends off the raster are dropped.
+    walls : bool
+        Drop candidates whose move crosses a blocked cell.
 
     Returns
     -------
@@ -327,7 +397,13 @@ def advance(
     cell = uy.astype(np.int64)
     cell *= nxp
     cell += ux.astype(np.int64)
-    ok = grid.free.ravel()[cell]
+    if free_end:
+        ok = grid.free.ravel()[cell]
+    else:
+        # Anywhere on the raster (so later moves stay in the padding): nobody
+        # walks off the floor plan's extent.
+        ny_r, nx_r = grid.free.shape[0] - 2 * grid.pad, nxp - 2 * grid.pad
+        ok = (ux >= grid.pad) & (ux < grid.pad + nx_r) & (uy >= grid.pad) & (uy < grid.pad + ny_r)
     # C order: position in the surviving list increases with (k, g, a).
     k, g, a = np.nonzero(ok)
     cell, ux, uy = cell[ok], ux[ok], uy[ok]
@@ -344,6 +420,8 @@ def advance(
     c0 = u0.astype(np.int64)
     safe0 = grid.safe[c0[:, 1] * nxp + c0[:, 0]]
     needs = lengths[g] >= safe0[k] + grid.safe_end[cell]
+    if not walls:
+        needs[:] = False
 
     def clear(pos: np.ndarray) -> np.ndarray:
         """Sampled wall test of the candidates at positions ``pos``."""
@@ -380,31 +458,54 @@ def advance(
     )
 
 
+@dataclass(frozen=True)
+class LinkOptions:
+    """The candidates tried for one link: γ values, directions relative to ψ, their φ and cost."""
+
+    scales: np.ndarray
+    rel: np.ndarray
+    phi: np.ndarray
+    cost: np.ndarray
+
+
 def _replay(
     start: np.ndarray,
     psi0: float,
     lengths: np.ndarray,
-    rels: list[np.ndarray],
-    scales: np.ndarray,
+    options: list[LinkOptions],
     choices: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rebuild points, chosen γ and directions from the per-link choices ``g * A + a``."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rebuild points, chosen γ, φ and directions from the per-link choices ``g * A + a``."""
     k = choices.size
     points = np.empty((k + 1, 2))
     points[0] = start
     direction = np.empty(k)
     gamma = np.empty(k)
+    phi = np.empty(k)
     psi = psi0
     for i in range(k):
-        n_a = rels[i].size
-        g, a = divmod(int(choices[i]), n_a)
+        opt = options[i]
+        g, a = divmod(int(choices[i]), opt.rel.size)
         # ψ_i = ψ_{i-1} + turn_i + φ_i,  x_i = x_{i-1} + γ l_i (cos ψ_i, sin ψ_i)
-        psi = psi + rels[i][a]
-        step = lengths[i] * scales[g]
+        psi = psi + opt.rel[a]
+        step = lengths[i] * opt.scales[g]
         points[i + 1] = points[i] + step * np.array([np.cos(psi), np.sin(psi)])
         direction[i] = psi
-        gamma[i] = scales[g]
-    return points, gamma, direction
+        gamma[i] = opt.scales[g]
+        phi[i] = opt.phi[a]
+    return points, gamma, phi, direction
+
+
+RELAX_NONE = 0
+"""The link was placed with Γ and Φ, clear of every wall."""
+RELAX_WIDENED = 1
+"""No track survived the link with Γ and Φ: it was placed with the wider Γ_w and Φ_w."""
+RELAX_CROSSED = 2
+"""Not even Γ_w and Φ_w placed it: the link crosses a wall (Γ, Φ; its end is free)."""
+RELAX_DEAD_RECKONED = 3
+"""No candidate even ended on free space (the walker is where the plan says nobody
+can be): the link keeps its measured length and turn, walls ignored; only an
+end off the plan's raster is refused (then the fit fails at that link)."""
 
 
 def fit_track(
@@ -424,7 +525,9 @@ def fit_track(
     plan : FloorPlan
         Free space; no fitted link crosses a blocked raster cell.
     start : ndarray, shape (2,)
-        x_0 (m), the first point of the track; must lie on a free cell.
+        x_0 (m), the first point of the track. A start on a blocked cell (a
+        surveyed or radio fix a little inside a barrier) is moved to the
+        nearest free cell's centre when that is within ``params.snap_start``.
     lengths : ndarray, shape (n,)
         Link lengths l_i (m), non-negative.
     turns : ndarray, shape (n,)
@@ -435,15 +538,17 @@ def fit_track(
         None, the first link tries every direction of [-π, π) in steps of
         ``first_step`` at no cost, as in the paper.
     params : TrackFitParams, optional
-        Γ, Φ, grid, weights and time limit.
+        Γ, Φ, grid, weights, recovery sets and time limit.
     clock : callable
         Seconds counter used for the time limit.
 
     Returns
     -------
     TrackFit
-        The fitted track, or with ``failed`` set and the best partial track
-        when the start is blocked, no track survives a link, or time runs out.
+        The fitted track. A link no track survives is placed by the recovery
+        steps of ``TrackFit.relaxed`` (with ``params.recover``); ``failed``
+        is set, with the best partial track, when the start is blocked beyond
+        ``snap_start``, a link dies without recovery, or time runs out.
     """
     p = params or TrackFitParams()
     t0 = clock()
@@ -457,41 +562,72 @@ def fit_track(
     if p.grid <= 0 or p.first_step <= 0 or not p.scales or not p.turns:
         raise ValueError("grid and first_step must be positive, scales and turns non-empty")
 
-    scales = _ordered(p.scales, 1.0)
-    phis = _ordered(p.turns, 0.0)
-    # C1 |1 - γ| + C2 |φ| per (γ, φ)
-    cost = p.c1 * np.abs(1.0 - scales)[:, None] + p.c2 * np.abs(phis)[None, :]
+    def options_for(scale_set: tuple[float, ...], turn_set: tuple[float, ...]) -> list[LinkOptions]:
+        """Candidates of every link for one (Γ, Φ) pair."""
+        scales = _ordered(scale_set, 1.0)
+        phis = _ordered(turn_set, 0.0)
+        # C1 |1 - γ| + C2 |φ| per (γ, φ)
+        cost = p.c1 * np.abs(1.0 - scales)[:, None] + p.c2 * np.abs(phis)[None, :]
+        out = []
+        for i in range(lengths.size):
+            if i == 0 and heading is None:
+                # θ_k = k Δθ ∈ [-π, π), free of charge; 0 and every multiple of the
+                # step are tried, so a track on the Φ lattice can be found exactly.
+                ks = np.arange(-np.floor(np.pi / p.first_step), np.ceil(np.pi / p.first_step))
+                theta = p.first_step * ks
+                theta = theta[(theta >= -np.pi) & (theta < np.pi)]
+                theta = theta[np.lexsort((theta, np.abs(theta)))]
+                free_cost = np.repeat(p.c1 * np.abs(1.0 - scales)[:, None], theta.size, axis=1)
+                out.append(LinkOptions(scales, theta, np.full(theta.size, np.nan), free_cost))
+            else:
+                out.append(LinkOptions(scales, turns[i] + phis, phis, cost))
+        return out
+
+    normal = options_for(p.scales, p.turns)
+    wide = options_for(p.wide_scales or p.scales, p.wide_turns or p.turns)
     n = lengths.size
-
-    rels: list[np.ndarray] = []
-    costs: list[np.ndarray] = []
-    for i in range(n):
-        if i == 0 and heading is None:
-            # θ_k = k Δθ ∈ [-π, π), free of charge; 0 and every multiple of the
-            # step are tried, so a track on the Φ lattice can be found exactly.
-            ks = np.arange(-np.floor(np.pi / p.first_step), np.ceil(np.pi / p.first_step))
-            theta = p.first_step * ks
-            theta = theta[(theta >= -np.pi) & (theta < np.pi)]
-            rels.append(theta[np.lexsort((theta, np.abs(theta)))])
-            costs.append(np.repeat(p.c1 * np.abs(1.0 - scales)[:, None], theta.size, axis=1))
-        else:
-            rels.append(turns[i] + phis)
-            costs.append(cost)
     psi0 = 0.0 if heading is None else float(heading)
+    used: list[LinkOptions] = []
+    relaxed: list[int] = []
+    x0 = start
 
-    def result(choices: np.ndarray, score: float, alive: list[int], failed: str | None) -> TrackFit:
-        points, gamma, direction = _replay(start, psi0, lengths, rels, scales, choices)
-        phi = np.array([phis[int(c) % phis.size] for c in choices])
-        if heading is None and choices.size:
-            phi[0] = np.nan
-        return TrackFit(points, float(score), gamma, phi, direction, np.array(alive), failed)
+    def result(
+        choices: np.ndarray, score: float, alive: list[int], failed: str | None, spread: float = 0.0
+    ) -> TrackFit:
+        k = choices.size
+        how = np.array(relaxed[:k], dtype=np.int8)
+        points, gamma, phi, direction = _replay(x0, psi0, lengths, used, choices)
+        return TrackFit(
+            points,
+            float(score),
+            gamma,
+            phi,
+            direction,
+            np.array(alive),
+            failed,
+            relaxed=how,
+            start_shift=float(np.hypot(*(x0 - start))),
+            spread=spread,
+            cell=cell,
+        )
 
     # Longest move tested: the longest candidate link.
-    grid = cell_grid(plan, p.grid, float(scales.max() * lengths.max()) if n else 0.0)
+    longest = max(max(p.scales), max(p.wide_scales or p.scales), 1.0)
+    cell = p.grid
+    if p.cell_per_link > 0 and n:
+        # A link shorter than the cell mostly ends in the cell it started from,
+        # where only the cheapest track survives: the DP turns greedy. Cells no
+        # larger than the typical link keep its alternatives apart.
+        cell = min(cell, p.cell_per_link * float(np.median(lengths)))
+        cell = max(cell, plan.cell)
+    grid = cell_grid(plan, cell, longest * float(lengths.max()) if n else 0.0)
     if not bool(plan.is_free(start)):
-        return result(np.zeros(0, np.int64), 0.0, [], "start is not in free space")
+        snapped = plan.project(start)
+        if p.snap_start <= 0 or float(np.hypot(*(snapped - start))) > p.snap_start:
+            return result(np.zeros(0, np.int64), 0.0, [], "start is not in free space")
+        x0 = snapped
 
-    xi = start[None, :]
+    xi = x0[None, :]
     psi = np.array([psi0])
     f = np.zeros(1)
     preds: list[np.ndarray] = []
@@ -499,13 +635,41 @@ def fit_track(
     alive: list[int] = []
     failed = None
     for i in range(n):
-        cells, xi2, psi2, f2, pred, choice = advance(
-            grid, xi, psi, f, scales * lengths[i], rels[i], costs[i]
-        )
+        # Γ and Φ; then the recovery ladder of a dead link, each rung tried only
+        # when the one before left no track: Γ_w and Φ_w; walls ignored with
+        # the end on free space; pure dead reckoning.
+        ladder = [(RELAX_NONE, normal[i], True, True)]
+        if p.recover:
+            # γ = 1, φ = 0 (any direction for a first link of unknown heading)
+            rel = normal[i].rel if heading is None and i == 0 else turns[i : i + 1]
+            phi = normal[i].phi if heading is None and i == 0 else np.zeros(1)
+            straight = LinkOptions(np.ones(1), rel, phi, np.zeros((1, rel.size)))
+            ladder += [
+                (RELAX_WIDENED, wide[i], True, True),
+                (RELAX_CROSSED, normal[i], True, False),
+                (RELAX_DEAD_RECKONED, straight, False, False),
+            ]
+        for rung in ladder:
+            _, opt, free_end, walls = rung
+            cells, xi2, psi2, f2, pred, choice = advance(
+                grid,
+                xi,
+                psi,
+                f,
+                opt.scales * lengths[i],
+                opt.rel,
+                opt.cost,
+                free_end=free_end,
+                walls=walls,
+            )
+            if cells.size:
+                break
         alive.append(int(cells.size))
         if cells.size == 0:
             failed = f"no track survives link {i + 1} of {n}"
             break
+        used.append(opt)
+        relaxed.append(rung[0])
         xi, psi, f = xi2, psi2, f2
         preds.append(pred.astype(np.int32))
         choices.append(choice.astype(np.int32))
@@ -516,9 +680,13 @@ def fit_track(
     # Backward pass: s*_{i-1} = ζ_i(s*_i) from the best last cell (lowest cell on ties).
     j = int(np.argmin(f))
     score = float(f[j])
+    # Ends of the other tracks that score within the margin: as good an
+    # explanation of the input, so the fit is only as certain as they agree.
+    near = f <= score + p.spread_margin
+    spread = float(np.hypot(*(xi[near] - xi[j]).T).max())
     k = len(choices)
     path = np.empty(k, dtype=np.int64)
     for i in range(k - 1, -1, -1):
         path[i] = choices[i][j]
         j = int(preds[i][j])
-    return result(path, score, alive, failed)
+    return result(path, score, alive, failed, spread)

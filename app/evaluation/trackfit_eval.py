@@ -33,7 +33,7 @@ from app.engine.pdr import detect_steps
 from app.engine.plan import FloorPlan
 from app.engine.trackfit import TrackFitParams, fit_track
 from app.evaluation.metrics import truth_at
-from app.evaluation.split import walk_split
+from app.evaluation.split import walk_split, walk_unit
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
 
@@ -73,6 +73,10 @@ class WalkResult:
     fitted: np.ndarray
     failed: str | None
     seconds: float
+    relaxed: int = 0
+    """Links placed by the fitter's recovery ladder (no track survived them)."""
+    spread: float = 0.0
+    """How far apart (m) equally good fits end (``TrackFit.spread``)."""
 
 
 def raw_track(
@@ -163,17 +167,15 @@ def position_at(t_points: np.ndarray, xy: np.ndarray, t: np.ndarray) -> np.ndarr
 
 def fit_walk(
     plan: FloorPlan, raw: RawTrack, links: str, heading: str, params: TrackFitParams
-) -> tuple[np.ndarray, np.ndarray, str | None, int, float]:
-    """Fit one raw track; return fitted step points, their times, failure, link count, seconds."""
+) -> tuple[np.ndarray, np.ndarray, str | None, int, float, int, float]:
+    """Fit one raw track: step points, times, failure, links, seconds, relaxed links, spread."""
     vertex = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
     lengths, turns, direction = as_links(raw.xy[vertex])
-    start = raw.xy[0]
-    if not plan.is_free(start):
-        start = plan.project(start)
     t0 = time.perf_counter()
+    # A start on a blocked cell is the fitter's to snap (``snap_start``).
     fit = fit_track(
         plan,
-        start,
+        raw.xy[0],
         lengths,
         turns,
         heading=float(direction[0]) if heading == "known" and lengths.size else None,
@@ -181,7 +183,8 @@ def fit_walk(
     )
     seconds = time.perf_counter() - t0
     pts = carry_steps(raw.xy, vertex, fit.points)
-    return pts, raw.t[: len(pts)], fit.failed, int(lengths.size), seconds
+    relaxed = int(np.count_nonzero(fit.relaxed))
+    return pts, raw.t[: len(pts)], fit.failed, int(lengths.size), seconds, relaxed, fit.spread
 
 
 def evaluate_walk(
@@ -199,13 +202,27 @@ def evaluate_walk(
     results, tracks = [], {}
     for links in LINK_MODES:
         for heading in HEADING_MODES:
-            pts, t_pts, failed, n_links, seconds = fit_walk(plan, raw, links, heading, params)
+            pts, t_pts, failed, n_links, seconds, relaxed, spread = fit_walk(
+                plan, raw, links, heading, params
+            )
             tracks[(links, heading)] = pts
             fitted = raw.xy if failed else pts
             fit_t = raw.t if failed else t_pts
             err = np.linalg.norm(position_at(fit_t, fitted, t_eval) - truth, axis=1)
             results.append(
-                WalkResult(walk_id, floor, links, heading, n_links, raw_err, err, failed, seconds)
+                WalkResult(
+                    walk_id,
+                    floor,
+                    links,
+                    heading,
+                    n_links,
+                    raw_err,
+                    err,
+                    failed,
+                    seconds,
+                    relaxed,
+                    spread,
+                )
             )
     return results, tracks
 
@@ -250,7 +267,8 @@ def summarize(results: list[WalkResult]) -> str:
     lines = [
         f"{'links':<7} {'heading':<8} {'walks':>5} {'failed':>6} {'raw mean':>9} "
         f"{'fit mean':>9} {'raw med':>8} {'fit med':>8} {'ok: raw':>8} {'ok: fit':>8} "
-        f"{'walk fit<raw':>12} {'s/fit med':>9} {'s/fit max':>9}"
+        f"{'walk fit<raw':>12} {'s/fit med':>9} {'s/fit max':>9} {'relaxed':>7} "
+        f"{'spread med':>10}"
     ]
     for links in LINK_MODES:
         for heading in HEADING_MODES:
@@ -264,11 +282,13 @@ def summarize(results: list[WalkResult]) -> str:
             ok_fit = np.concatenate([r.fitted for r in ok]) if ok else np.zeros(0)
             better = sum(r.fitted.mean() < r.raw.mean() for r in rs)
             secs = np.array([r.seconds for r in rs])
+            relaxed = sum(r.relaxed > 0 for r in rs)
             lines.append(
                 f"{links:<7} {heading:<8} {len(rs):>5} {len(rs) - len(ok):>6} {raw.mean():>9.2f} "
                 f"{fit.mean():>9.2f} {np.median(raw):>8.2f} {np.median(fit):>8.2f} "
                 f"{ok_raw.mean() if ok else np.nan:>8.2f} {ok_fit.mean() if ok else np.nan:>8.2f} "
-                f"{better:>5}/{len(rs):<6} {np.median(secs):>9.3f} {secs.max():>9.3f}"
+                f"{better:>5}/{len(rs):<6} {np.median(secs):>9.3f} {secs.max():>9.3f} "
+                f"{relaxed:>7} {np.median([r.spread for r in rs]):>10.2f}"
             )
     return "\n".join(lines)
 
@@ -278,28 +298,47 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--site", type=Path, default=data_dir() / "ilc" / "site1")
     parser.add_argument("--test-fraction", type=float, default=0.2)
+    parser.add_argument(
+        "--split",
+        choices=("test", "validation"),
+        default="test",
+        help="held-out test walks, or a validation split carved from the training walks "
+        "(for tuning; never tune on test)",
+    )
+    parser.add_argument("--validation-fraction", type=float, default=0.2)
     parser.add_argument("--grid", type=float, default=TrackFitParams().grid)
+    parser.add_argument("--cell-per-link", type=float, default=TrackFitParams().cell_per_link)
     parser.add_argument("--time-limit", type=float, default=30.0)
     parser.add_argument("--plots", type=Path, default=None, help="write one PNG per walk here")
     parser.add_argument("--quiet", action="store_true", help="no per-walk lines")
     args = parser.parse_args(argv)
 
-    params = TrackFitParams(grid=args.grid, time_limit_s=args.time_limit)
+    params = TrackFitParams(
+        grid=args.grid,
+        cell_per_link=args.cell_per_link,
+        time_limit_s=args.time_limit,
+    )
     walks = site_walks(args.site)
-    _, test_ids = walk_split([p.name.split(".")[0] for _, p in walks], args.test_fraction)
-    test = set(test_ids)
+    train_ids, test_ids = walk_split([p.name.split(".")[0] for _, p in walks], args.test_fraction)
+    if args.split == "validation":
+        # the training walks whose hash unit lies in [test, test + validation)
+        upper = args.test_fraction + args.validation_fraction
+        test = {w for w in train_ids if walk_unit(w) < upper}
+    else:
+        test = set(test_ids)
     plans: dict[str, FloorPlan] = {}
     if args.plots:
         args.plots.mkdir(parents=True, exist_ok=True)
     results: list[WalkResult] = []
     print(
-        f"site {args.site.name}: {len(test)} test walks, grid {args.grid} m, raster "
+        f"site {args.site.name}: {len(test)} {args.split} walks, grid {args.grid} m, "
+        f"cell per link {args.cell_per_link}, raster "
         f"{RASTER_CELL_M} m, merge tolerance {MERGE_TOLERANCE_M} m"
     )
     if not args.quiet:
         print(
             f"{'walk':<26} {'floor':<5} {'links':<7} {'heading':<8} {'n':>4} {'raw':>7} "
-            f"{'fitted':>7} {'s':>6}  failed"
+            f"{'fitted':>7} {'s':>6} {'relax':>5}  failed"
         )
     for floor, path in walks:
         walk_id = path.name.split(".")[0]
@@ -323,7 +362,8 @@ def main(argv: list[str] | None = None) -> None:
             for r in walk_results:
                 print(
                     f"{r.walk_id:<26} {r.floor:<5} {r.links:<7} {r.heading:<8} {r.n_links:>4} "
-                    f"{r.raw.mean():>7.2f} {r.fitted.mean():>7.2f} {r.seconds:>6.2f}  "
+                    f"{r.raw.mean():>7.2f} {r.fitted.mean():>7.2f} {r.seconds:>6.2f} "
+                    f"{r.relaxed:>5}  "
                     f"{r.failed or ''}"
                 )
         if args.plots:
@@ -341,7 +381,9 @@ def main(argv: list[str] | None = None) -> None:
                 + (f" — {main_fit.failed}" if main_fit.failed else ""),
             )
     print()
-    print("errors (m) at the waypoints after the first; failed fits scored with the raw track")
+    print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
+    print("relaxed: walks with a link placed by the fitter's recovery ladder; spread: how far")
+    print("apart (m) the fits scoring within one Φ step of the best end (ambiguity)")
     print(summarize(results))
 
 

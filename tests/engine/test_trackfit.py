@@ -17,6 +17,10 @@ import shapely
 from app.engine.plan import FloorPlan, burn_segments
 from app.engine.trackfit import (
     NONE,
+    RELAX_CROSSED,
+    RELAX_DEAD_RECKONED,
+    RELAX_NONE,
+    RELAX_WIDENED,
     TrackFitParams,
     advance,
     best_per_cell,
@@ -264,7 +268,8 @@ def test_fit_equals_the_loop_reference(seed: int, known_heading: bool, grid: flo
     lengths *= rng.uniform(0.9, 1.1, lengths.size)
     turns += rng.normal(0.0, 0.05, turns.size)
     heading = float(direction[0] + rng.normal(0.0, 0.05)) if known_heading else None
-    params = TrackFitParams(grid=grid, first_step=0.1)
+    # The paper's algorithm: a link no track survives ends the fit.
+    params = TrackFitParams(grid=grid, first_step=0.1, recover=False, cell_per_link=0.0)
     fit = fit_track(PLAN, truth[0], lengths, turns, heading=heading, params=params)
     points, score, counts, placed = reference_fit(PLAN, truth[0], lengths, turns, heading, params)
     assert fit.alive.tolist() == counts
@@ -363,13 +368,14 @@ def base_turns() -> tuple[float, ...]:
 
 
 def test_failures_return_the_best_partial_track() -> None:
-    # A 20 m link fits nowhere in a 12 × 8 m plan.
-    fit = fit_track(PLAN, ROUTE[0], np.array([1.5, 20.0]), np.zeros(2), heading=0.0)
+    # A 20 m link fits nowhere in a 12 × 8 m plan; without recovery the fit stops there.
+    strict = TrackFitParams(recover=False, snap_start=0.0)
+    fit = fit_track(PLAN, ROUTE[0], np.array([1.5, 20.0]), np.zeros(2), heading=0.0, params=strict)
     assert fit.failed == "no track survives link 2 of 2"
     np.testing.assert_allclose(fit.points, ROUTE[:2], atol=1e-9)
     assert fit.alive.tolist()[-1] == 0
 
-    blocked = fit_track(PLAN, np.array([5.0, 2.0]), np.ones(2), np.zeros(2))
+    blocked = fit_track(PLAN, np.array([5.0, 2.0]), np.ones(2), np.zeros(2), params=strict)
     assert blocked.failed == "start is not in free space"
     assert blocked.points.shape == (1, 2)
 
@@ -395,3 +401,121 @@ def test_invalid_input_is_rejected() -> None:
         fit_track(PLAN, ROUTE[0], np.array([1.0, -1.0]), np.zeros(2))
     with pytest.raises(ValueError):
         fit_track(PLAN, ROUTE[0], np.ones(2), np.zeros(2), params=TrackFitParams(grid=0.0))
+
+
+def test_blocked_start_is_snapped_to_the_nearest_free_cell() -> None:
+    # (5, 2) lies on the corridor wall: a surveyed or radio start a hair inside
+    # a barrier. The fitter moves it to the nearest free raster cell and fits
+    # from there, reporting the move; beyond snap_start it refuses as before.
+    start = np.array([5.0, 2.0])
+    lengths, turns = np.array([2.0, 2.0]), np.array([0.0, 0.0])
+    fit = fit_track(PLAN, start, lengths, turns, heading=0.0)
+    assert fit.failed is None
+    assert bool(PLAN.is_free(fit.points[0]))
+    assert 0.0 < fit.start_shift < PLAN.cell
+    np.testing.assert_allclose(np.linalg.norm(fit.points[0] - start), fit.start_shift)
+    refused = fit_track(
+        PLAN, start, lengths, turns, heading=0.0, params=TrackFitParams(snap_start=0.0)
+    )
+    assert refused.failed == "start is not in free space"
+
+
+def test_dead_link_is_placed_with_the_wider_turns() -> None:
+    # The staircase corridor, 0.6 m wide, with the first corner's turn measured
+    # 0.45 rad short: no φ of Φ (±0.25) gets the second link into the corridor
+    # going north, so the paper's fit dies there; Φ_w (±0.5) places it with
+    # φ = 0.45 and the rest of the track fits as measured.
+    plan, corners = staircase()
+    lengths, turns, _ = links(corners)
+    turns[1] -= 0.45
+    strict = fit_track(
+        plan, corners[0], lengths, turns, heading=0.0, params=TrackFitParams(recover=False)
+    )
+    assert strict.failed == "no track survives link 2 of 4"
+    fit = fit_track(plan, corners[0], lengths, turns, heading=0.0)
+    assert fit.failed is None
+    assert fit.relaxed.tolist() == [RELAX_NONE, RELAX_WIDENED, RELAX_NONE, RELAX_NONE]
+    assert fit.turn[1] == pytest.approx(0.45)
+    assert fit.score == pytest.approx(0.45)
+    np.testing.assert_allclose(fit.points, corners, atol=1e-9)
+
+
+def test_link_through_a_wall_is_kept_when_nothing_else_fits() -> None:
+    # The walker went north from the corridor into the left room at x = 5,
+    # where the plan has a wall and no door (a door missing from the map). Every
+    # candidate, even with Γ_w and Φ_w, crosses it; the link is placed as
+    # measured and flagged, and the fit continues inside the room.
+    fit = fit_track(
+        PLAN, np.array([5.0, 1.0]), np.array([2.0, 2.0]), np.zeros(2), heading=np.pi / 2
+    )
+    assert fit.failed is None
+    assert fit.relaxed.tolist() == [RELAX_CROSSED, RELAX_NONE]
+    np.testing.assert_allclose(fit.points, [[5.0, 1.0], [5.0, 3.0], [5.0, 5.0]], atol=1e-9)
+    assert fit.score == 0.0
+
+
+def test_links_ending_inside_a_barrier_are_dead_reckoned_until_free_again() -> None:
+    # A 20 × 4 m corridor with a barrier across it at 9 < x < 11 that the walker
+    # went straight through (an open area the map closes). From x = 8.5 every
+    # candidate of the next link ends inside it, so links 8 and 9 keep their
+    # measured length and turn; link 10 leaves it crossing its edge, with a
+    # free end; then the fit goes on as usual. Off the raster nothing is placed.
+    cell = 0.1
+    origin = np.array([-0.45, -0.45])
+    xs = origin[0] + (np.arange(round(21 / cell)) + 0.5) * cell
+    ys = origin[1] + (np.arange(round(5 / cell)) + 0.5) * cell
+    free = ((ys > 0) & (ys < 4))[:, None] & ((xs > 0) & (xs < 20) & ~((xs > 9) & (xs < 11)))
+    plan = FloorPlan.from_raster(origin=origin, cell=cell, free=free)
+    start = np.array([1.5, 2.0])
+    fit = fit_track(plan, start, np.ones(11), np.zeros(11), heading=0.0)
+    assert fit.failed is None
+    assert fit.relaxed.tolist() == [RELAX_NONE] * 7 + [
+        RELAX_DEAD_RECKONED,
+        RELAX_DEAD_RECKONED,
+        RELAX_CROSSED,
+        RELAX_NONE,
+    ]
+    np.testing.assert_allclose(fit.points[:, 0], 1.5 + np.arange(12), atol=1e-9)
+    np.testing.assert_allclose(fit.points[:, 1], 2.0, atol=1e-9)
+    assert fit.score == 0.0
+    off = fit_track(plan, start, np.array([30.0]), np.zeros(1), heading=0.0)
+    assert off.failed == "no track survives link 1 of 1"
+
+
+def test_links_shorter_than_the_grid_get_cells_no_larger_than_a_link() -> None:
+    # ROUTE walked in 0.5 m steps, each measured 10 % short. With 1 m cells two
+    # consecutive steps mostly end in one cell, where only the cheapest track
+    # (unstretched, heading for the wall left of the door) survives: at most two
+    # cells stay alive and the paper's fit dies before the door. Cells of one
+    # step keep the stretched alternatives and the fit goes through the door.
+    dense = [ROUTE[0]]
+    for a, b in itertools.pairwise(ROUTE):
+        n = int(np.ceil(np.linalg.norm(b - a) / 0.5))
+        dense += [a + (b - a) * k / n for k in range(1, n + 1)]
+    lengths, turns, direction = links(np.array(dense))
+    heading = float(direction[0])
+    coarse = TrackFitParams(cell_per_link=0.0, recover=False)
+    stuck = fit_track(PLAN, dense[0], lengths / 1.1, turns, heading=heading, params=coarse)
+    assert stuck.failed is not None and stuck.alive.max() <= 2
+    fit = fit_track(
+        PLAN, dense[0], lengths / 1.1, turns, heading=heading, params=TrackFitParams(recover=False)
+    )
+    assert fit.failed is None
+    assert stuck.cell == 1.0
+    assert fit.cell == pytest.approx(np.median(lengths / 1.1))
+    assert fit.alive.max() > 2
+    assert PLAN.segment_free(fit.points[:-1], fit.points[1:]).all()
+    assert fit.points[-1, 0] > 6.0 and fit.points[-1, 1] > 2.0
+
+
+def test_spread_measures_how_far_equally_good_fits_end_apart() -> None:
+    # Three straight 1.5 m links from the middle of the corridor. Known heading
+    # (east): one way to fit, the near-best tracks end within a Φ step's swing.
+    # Unknown heading: east and west fit equally well (score 0), 9 m apart.
+    start = np.array([6.0, 1.0])
+    lengths, turns = np.full(3, 1.5), np.zeros(3)
+    known = fit_track(PLAN, start, lengths, turns, heading=0.0)
+    assert known.spread < 0.5
+    free = fit_track(PLAN, start, lengths, turns)
+    assert free.score == 0.0
+    assert free.spread == pytest.approx(9.0, abs=0.5)
