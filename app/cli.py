@@ -175,7 +175,7 @@ EVALUATIONS = {
     "ble-flat": "app.evaluation.ble_flat_eval",
     "uwb": "app.evaluation.uwb_eval",
     "locator": "app.evaluation.locator_eval",
-    "fingerprint": "app.evaluation.fingerprint_eval",
+    "ilc": "app.evaluation.ilc_eval",
 }
 
 
