@@ -19,7 +19,11 @@ inside the waypoints' span. Horizontal errors count only where the estimated
 floor is right; the floor error is the share of estimates on a wrong floor;
 the heading error is against the direction of the waypoint segment being
 walked, on segments where the walker moves. CPU time is per one-second batch
-of one device (one device update), measured unbatched.
+of one device (one device update); the particle filter replays all walks as
+devices of one engine, batched as a server worker runs them
+(``--pf-unbatched`` replays them one by one: the same filter and random
+draws, but float32 sums over a batch's padded readings round differently and
+resampling amplifies that, so single estimates differ by up to decimetres).
 
 ``--validation-fraction`` carves a validation set out of the training walks
 (``split_ids``) and evaluates on it instead of the test walks: for studying
@@ -45,7 +49,12 @@ from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate,
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
 from app.engine.particle import build_floor_models
 from app.engine.pdr import PdrParams, detect_steps
-from app.engine.positioning import ParticleTracker, PositioningParams, seed_from_id
+from app.engine.positioning import (
+    ParticleTracker,
+    PositioningEngine,
+    PositioningParams,
+    seed_from_id,
+)
 from app.engine.radiomap import (
     RadioMap,
     RadioMapParams,
@@ -256,6 +265,55 @@ def make_runner(name: str, learned: Learned) -> Runner:
 
         return run_pf
     raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
+
+
+def replay_pf_batched(
+    site: SiteData,
+    learned: Learned,
+    walks: Sequence[Walk],
+    progress: Callable[[int], None] = lambda _i: None,
+) -> tuple[list[list[Estimate]], float, int]:
+    """Replay all walks at once as devices of one ``PositioningEngine``, as a server worker does.
+
+    Walk k's i-th batch goes in the engine's i-th call with every other
+    walk's i-th batch, so each call is one batched filter update per floor
+    for all devices. A device draws its own random numbers whatever its
+    batch mates, so the estimates are those of replaying each walk alone up
+    to float rounding (the likelihood's float32 sum runs over the batch's
+    padded reading width, and resampling amplifies the last bits). Returns
+    each walk's estimates, the engine's CPU time (s) and the number of
+    device updates.
+    """
+    params = PositioningParams(pdr=learned.pdr)
+    engine = PositioningEngine(
+        learned.pf_site, params, build_floor_models(learned.pf_site, params.filter)
+    )
+    streams = {}
+    for walk in walks:
+        engine.add(walk.walk_id, seed_from_id(walk.walk_id))
+        streams[walk.walk_id] = walk_batches(site, walk)
+    out: dict[str, list[Estimate]] = {w.walk_id: [] for w in walks}
+    cpu, updates = 0.0, 0
+    while streams:
+        due: dict[str, Batch] = {}
+        for walk_id, stream in list(streams.items()):
+            batch = next(stream, None)
+            if batch is None:
+                del streams[walk_id]
+                t0 = time.process_time()
+                out[walk_id].extend(engine.flush([walk_id])[walk_id])
+                cpu += time.process_time() - t0
+                engine.remove(walk_id)
+                progress(len(walks) - len(streams))
+            else:
+                due[walk_id] = remap(batch, learned.pf_lookup)
+        if due:
+            t0 = time.process_time()
+            for walk_id, estimates in engine.process(due).items():
+                out[walk_id].extend(estimates)
+            cpu += time.process_time() - t0
+            updates += len(due)
+    return [out[w.walk_id] for w in walks], cpu, updates
 
 
 # --- scoring -------------------------------------------------------------------------
@@ -484,25 +542,38 @@ def evaluate(
     methods: Sequence[str],
     *,
     keep: Iterable[str] = (),
+    batched: bool = True,
     progress: Callable[[str, int], None] = lambda _m, _i: None,
 ) -> Evaluation:
-    """Replay ``walks`` through every method; return their rows and the kept walks' estimates."""
+    """Replay ``walks`` through every method; return their rows and the kept walks' estimates.
+
+    ``batched`` runs the particle filter's walks as devices of one engine
+    (the server's way, which sets its CPU per update); otherwise walk by walk.
+    """
     keep = set(keep)
     rows: list[Row] = []
     kept: dict[str, dict[str, list[Estimate]]] = {w: {} for w in keep}
     run_s: dict[str, float] = {}
     for name in methods:
         started = time.perf_counter()
-        runner = make_runner(name, learned)
-        scores, cpu, updates = [], 0.0, 0
-        for i, walk in enumerate(walks):
-            result = runner(site, walk)
-            scores.append(score_walk(walk.waypoints, site.floor_index(walk), result.estimates))
-            cpu += result.cpu_s
-            updates += result.updates
+        if name == "pf" and batched:
+            estimates, cpu, updates = replay_pf_batched(
+                site, learned, walks, lambda i, _n=name: progress(_n, i)
+            )
+        else:
+            runner = make_runner(name, learned)
+            estimates, cpu, updates = [], 0.0, 0
+            for i, walk in enumerate(walks):
+                result = runner(site, walk)
+                estimates.append(result.estimates)
+                cpu += result.cpu_s
+                updates += result.updates
+                progress(name, i + 1)
+        scores = []
+        for walk, est in zip(walks, estimates, strict=True):
+            scores.append(score_walk(walk.waypoints, site.floor_index(walk), est))
             if walk.walk_id in keep:
-                kept[walk.walk_id][name] = result.estimates
-            progress(name, i + 1)
+                kept[walk.walk_id][name] = est
         rows.append(summarise(name, scores, cpu, updates))
         run_s[name] = time.perf_counter() - started
     return Evaluation(rows, kept, run_s=run_s)
@@ -529,6 +600,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--plots", type=Path, help="folder for PNGs of a few walks")
     parser.add_argument("--n-plots", type=int, default=4)
+    parser.add_argument(
+        "--pf-unbatched",
+        action="store_true",
+        help="replay the particle filter walk by walk instead of all walks in one engine",
+    )
     args = parser.parse_args(argv)
 
     console = Console(width=max(Console().width, 120))
@@ -573,6 +649,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             walks,
             args.methods,
             keep=plotted,
+            batched=not args.pf_unbatched,
             progress=lambda m, i: bar.update(tasks[m], completed=i),
         )
     table = Table(title=f"ILC site1, {len(walks)} held-out walks (split by walk id)")
@@ -583,7 +660,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     console.print(table)
     console.print(
         "errors on the right floor only, against waypoints interpolated at the estimate's time; "
-        "CPU per one-second batch of one device; run times: "
+        "CPU per one-second batch of one device"
+        + ("" if args.pf_unbatched else f" (pf: {len(walks)} walks batched in one engine)")
+        + "; run times: "
         + ", ".join(f"{m} {s:.0f} s" for m, s in result.run_s.items())
     )
     if args.plots:
