@@ -21,9 +21,8 @@ the heading error is against the direction of the waypoint segment being
 walked, on segments where the walker moves. CPU time is per one-second batch
 of one device (one device update); the particle filter replays all walks as
 devices of one engine, batched as a server worker runs them
-(``--pf-unbatched`` replays them one by one: the same filter and random
-draws, but float32 sums over a batch's padded readings round differently and
-resampling amplifies that, so single estimates differ by up to decimetres).
+(``--pf-unbatched`` replays them one by one: the estimates are identical,
+only the CPU per update differs).
 
 ``--validation-fraction`` carves a validation set out of the training walks
 (``split_ids``) and evaluates on it instead of the test walks: for studying
@@ -277,12 +276,10 @@ def replay_pf_batched(
 
     Walk k's i-th batch goes in the engine's i-th call with every other
     walk's i-th batch, so each call is one batched filter update per floor
-    for all devices. A device draws its own random numbers whatever its
-    batch mates, so the estimates are those of replaying each walk alone up
-    to float rounding (the likelihood's float32 sum runs over the batch's
-    padded reading width, and resampling amplifies the last bits). Returns
-    each walk's estimates, the engine's CPU time (s) and the number of
-    device updates.
+    for all devices. A device's filter does not depend on its batch mates,
+    so the estimates are those of replaying each walk alone; only the CPU
+    per device update differs. Returns each walk's estimates, the engine's
+    CPU time (s) and the number of device updates.
     """
     params = PositioningParams(pdr=learned.pdr)
     engine = PositioningEngine(
