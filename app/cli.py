@@ -226,7 +226,7 @@ EVALUATIONS = {
     "uwb": "app.evaluation.uwb_eval",
     "locator": "app.evaluation.locator_eval",
     "locator-http": "app.evaluation.locator_http",
-    "fingerprint": "app.evaluation.fingerprint_eval",
+    "ilc": "app.evaluation.ilc_eval",
 }
 
 

@@ -862,7 +862,8 @@ def mutation(
     """
     m = u.shape[1] // 5
     pick = (u[:, :m] * n).astype(np.intp)
-    x, y, alpha = scatter(model, u[:, m:].reshape(-1, 4, m).transpose(0, 2, 1))
+    # (R, 4 N_m) → (R, N_m, 4); the row count is explicit so that N_m = 0 reshapes too
+    x, y, alpha = scatter(model, u[:, m:].reshape(u.shape[0], 4, m).transpose(0, 2, 1))
     return pick, x, y, alpha
 
 

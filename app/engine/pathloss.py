@@ -251,6 +251,13 @@ def grid_log_likelihood(
 ) -> np.ndarray:
     """Return the Gaussian log-likelihood of each particle, up to a per-row constant.
 
+    Each row is summed over its own readings only, up to its last non-zero
+    weight, so its result does not depend on how far other rows of the
+    batch pad the table: a float32 dot product padded with zeros can round
+    differently (BLAS splits the sum by length), and resampling amplifies
+    the last bit into different particles, so a device's track would depend
+    on its batch mates.
+
     Parameters
     ----------
     grid : RssiGrid
@@ -265,7 +272,7 @@ def grid_log_likelihood(
         n_m / (2 σ_m²): readings of the transmitter in the window over twice
         its variance (dB⁻²); 0 for padding.
     block : int
-        Rows per pass: the (block, M, N) temporaries stay in the CPU cache.
+        Rows per gather: the (block, M, N) temporaries stay in the CPU cache.
 
     Returns
     -------
@@ -284,13 +291,22 @@ def grid_log_likelihood(
     s_code = ((rssi - grid.floor_dbm) / step).astype(np.float32)[:, :, None]
     # c'_m = -step² n_m / (2 σ_m²) turns code units back into dB
     c = (-weight * step * step).astype(np.float32)[:, None, :]
-    out = np.empty(cells.shape, np.float32)
+    # each row's own width: one past its last non-zero weight
+    nonzero = np.asarray(weight) != 0
+    width = np.where(nonzero.any(axis=1), nonzero.shape[1] - np.argmax(nonzero[:, ::-1], axis=1), 0)
+    out = np.zeros(cells.shape, np.float32)
     for a in range(0, cells.shape[0], block):
-        b = a + block
+        b = min(a + block, cells.shape[0])
+        m = int(width[a:b].max(initial=0))
+        if m == 0:
+            continue
         # index = tx · n_cells + cell, laid out (D, M, N) so inner loops run over particles
-        codes = np.take(flat, base[a:b, :, None] + cells[a:b, None, :])
-        diff = codes - s_code[a:b]
+        codes = np.take(flat, base[a:b, :m, None] + cells[a:b, None, :])
+        diff = codes - s_code[a:b, :m]
         diff *= diff
-        # ll_n = -Σ_m c'_m (code_mn - s'_m)²
-        np.matmul(c[a:b], diff, out=out[a:b, None, :])
+        for r in range(a, b):
+            k = int(width[r])
+            if k:
+                # ll_n = -Σ_m c'_m (code_mn - s'_m)², over the row's own readings
+                np.matmul(c[r, :, :k], diff[r - a, :k], out=out[r : r + 1])
     return out

@@ -363,6 +363,18 @@ def test_update_runs_mutation_and_centre_only_with_n_emin_transmitters() -> None
         assert int(away.sum()) <= P.n_mutate + P.n_centre
 
 
+@pytest.mark.parametrize(("n_mutate", "n_centre"), [(0, 10), (50, 0), (0, 0)])
+def test_mutation_or_centre_sampling_can_be_switched_off(n_mutate: int, n_centre: int) -> None:
+    # N_m = 0 used to crash: reshape(-1, 4, 0) of an empty array is ambiguous
+    params = replace(P, n_mutate=n_mutate, n_centre=n_centre, resample_n=1e-9)
+    bank = settled_bank(2.0, 5.0)
+    update_filters(bank, MODEL, [_heard([0, 1, 2], [-60.0] * 3)], params)
+    away = np.hypot(bank.x[0] - 2.0, bank.y[0] - 5.0) > 1e-6
+    placed = n_mutate + n_centre
+    assert (0 < int(away.sum()) <= placed) if placed else not away.any()
+    assert bank.last_weights[0] == 10_000
+
+
 # --- estimate, batching, determinism ---------------------------------------------------
 
 
