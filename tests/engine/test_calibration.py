@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.optimize._numdiff import approx_derivative
 
 from app.engine.calibration import (
     CalibrationParams,
+    _jacobian,
+    _residuals,
     calibrate,
     distances,
     fit_path_loss,
@@ -123,3 +126,18 @@ def test_too_few_readings_or_too_little_spread_are_not_fitted() -> None:
     scan_xy = np.array([[5.0, 5.0]] * 40 + [[6.0, 5.0]] * 5)
     survey = _survey(scan_xy, TRUTH[:1], sigma=1.0, seed=1)
     assert calibrate(survey, PARAMS) == []
+
+
+@pytest.mark.parametrize("known", [False, True])
+def test_analytic_jacobian_matches_finite_differences(known: bool) -> None:
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0.0, 30.0, (40, 2))
+    # some readings saturated, some heard, plus censored scans
+    rssi = np.concatenate([np.full(5, -20.0), rng.uniform(-95.0, -40.0, 35)])
+    censored = rng.uniform(0.0, 30.0, (25, 2))
+    theta = np.array([-45.0, 14.0]) if known else np.array([12.0, 9.0, -45.0, 14.0])
+    position = np.array([12.0, 9.0]) if known else None
+    args = (xy, rssi, censored, 5.0, DZ, position, PARAMS)
+    analytic = _jacobian(theta, *args)
+    numeric = approx_derivative(_residuals, theta, method="3-point", args=args)
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-7)
