@@ -8,8 +8,8 @@ located by WKNN on maps built from the other folds only, and their errors
 pooled.
 
 WKNN is vectorised over the held-out scans: with readings shifted by the
-missing level, ``d² = |v|² - 2 S Vᵀ + |s|²`` is one sparse-times-dense product
-per floor map for a chunk of scans.
+missing level, ``d² = |v|² - 2 S Vᵀ + |s|²`` is one dense matrix product per
+floor map for a chunk of scans.
 """
 
 from __future__ import annotations
@@ -55,6 +55,10 @@ def wknn_scans(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Locate every scan of ``survey`` by WKNN (same answer as ``wknn`` scan by scan).
 
+    Floor by floor, each chunk of scans is densified over the floor's
+    transmitters so the distances are one BLAS product, and only the floor's
+    k nearest are kept; the k nearest overall are among those.
+
     Returns
     -------
     xy : ndarray, shape (S, 2)
@@ -68,34 +72,44 @@ def wknn_scans(
     n_tx = max(int(survey.reading_tx.max(initial=-1)) + 1, fingerprints.columns[0].size)
     S = sparse.csr_matrix((s_val, (survey.reading_scan, survey.reading_tx)), shape=(n, n_tx))
     s_norm = np.asarray(S.multiply(S).sum(axis=1)).ravel()
+    k = params.k
+    n_maps = len(fingerprints.values)
+    cand_d = np.full((n, n_maps * k), np.inf)
+    cand_i = np.zeros((n, n_maps * k), dtype=np.int64)
+    offset = 0
+    for f, (lookup, values, norms) in enumerate(
+        zip(fingerprints.columns, fingerprints.values, fingerprints.norms, strict=True)
+    ):
+        cols = np.flatnonzero(lookup >= 0)
+        cols = cols[cols < n_tx]
+        V = values[lookup[cols]].astype(np.float64)
+        S_f = S[:, cols].tocsr()
+        kf = min(k, norms.size)
+        for lo in range(0, n, CHUNK):
+            hi = min(lo + CHUNK, n)
+            # d² = |v|² - 2 v·s + |s|²
+            dot = S_f[lo:hi].toarray() @ V
+            d2 = np.maximum(norms[None, :] - 2.0 * dot + s_norm[lo:hi, None], 0.0)
+            part = np.argpartition(d2, kf - 1, axis=1)[:, :kf]
+            cand_d[lo:hi, f * k : f * k + kf] = np.sqrt(np.take_along_axis(d2, part, axis=1))
+            cand_i[lo:hi, f * k : f * k + kf] = part + offset
+        offset += norms.size
+    k = min(k, offset)
+    pick = np.argpartition(cand_d, k - 1, axis=1)[:, :k]
+    dk = np.take_along_axis(cand_d, pick, axis=1)
+    near = np.take_along_axis(cand_i, pick, axis=1)
+    # w_i = 1 / (d_i + ε)
+    w = 1.0 / (dk + params.eps_db)
+    floors = fingerprints.floor[near]
     xy_out = np.zeros((n, 2))
     floor_out = np.zeros(n, dtype=np.int64)
-    for lo in range(0, n, CHUNK):
-        hi = min(lo + CHUNK, n)
-        blocks = []
-        for lookup, values, norms in zip(
-            fingerprints.columns, fingerprints.values, fingerprints.norms, strict=True
-        ):
-            cols = np.flatnonzero(lookup >= 0)
-            cols = cols[cols < n_tx]
-            # dot = S[:, cols] · V[lookup[cols]]
-            dot = S[lo:hi][:, cols] @ values[lookup[cols]].astype(np.float64)
-            # d² = |v|² - 2 v·s + |s|²
-            blocks.append(np.maximum(norms[None, :] - 2.0 * dot + s_norm[lo:hi, None], 0.0))
-        d = np.sqrt(np.hstack(blocks))
-        k = min(params.k, d.shape[1])
-        near = np.argpartition(d, k - 1, axis=1)[:, :k]
-        dk = np.take_along_axis(d, near, axis=1)
-        # w_i = 1 / (d_i + ε)
-        w = 1.0 / (dk + params.eps_db)
-        floors = fingerprints.floor[near]
-        for r in range(hi - lo):
-            votes = np.bincount(floors[r], weights=w[r])
-            f = int(np.argmax(votes))
-            on = floors[r] == f
-            # x = Σ w_i x_i / Σ w_i over the voted floor's neighbours
-            xy_out[lo + r] = w[r, on] @ fingerprints.xy[near[r, on]] / w[r, on].sum()
-            floor_out[lo + r] = f
+    for r in range(n):
+        votes = np.bincount(floors[r], weights=w[r])
+        best = int(np.argmax(votes))
+        on = floors[r] == best
+        # x = Σ w_i x_i / Σ w_i over the voted floor's neighbours
+        xy_out[r] = w[r, on] @ fingerprints.xy[near[r, on]] / w[r, on].sum()
+        floor_out[r] = best
     return xy_out, floor_out
 
 

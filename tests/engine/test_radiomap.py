@@ -117,15 +117,29 @@ def _corridor(seed: int) -> Survey:
 
 def test_batched_wknn_equals_scan_by_scan_wknn() -> None:
     survey = _corridor(seed=2)
+    # two "floors" mapped from different walks compete for the held-out walk's scans
+    two = Survey(
+        scan_t=survey.scan_t,
+        scan_xy=survey.scan_xy,
+        scan_floor=(survey.scan_walk >= 3).astype(np.int32),
+        scan_walk=survey.scan_walk,
+        reading_scan=survey.reading_scan,
+        reading_tx=survey.reading_tx,
+        reading_rssi=survey.reading_rssi,
+    )
     params = WknnParams()
-    maps = [build_radio_map(survey.select(survey.scan_walk != 0), 0, RadioMapParams())]
+    train = two.select(two.scan_walk != 0)
+    maps = [build_radio_map(train, f, RadioMapParams()) for f in (0, 1)]
     fp = Fingerprints(maps, params.missing_dbm)
-    held = survey.select(survey.scan_walk == 0)
+    held = two.select(two.scan_walk == 0)
     xy, floor = wknn_scans(fp, held, params)
+    floors = set()
     for i in range(held.n_scans):
         on = held.reading_scan == i
         ref = wknn(fp, held.reading_tx[on], held.reading_rssi[on], params)
         assert xy[i] == pytest.approx(ref.xy, abs=1e-9) and floor[i] == ref.floor
+        floors.add(ref.floor)
+    assert floors == {0, 1}
 
 
 def test_cross_validation_holds_out_whole_walks_and_locates_the_corridor() -> None:
