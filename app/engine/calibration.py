@@ -29,6 +29,7 @@ readings are fitted, as the model has no floor-attenuation term.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
@@ -38,6 +39,9 @@ from scipy.spatial import cKDTree
 from app.engine.pathloss import expected_rssi
 from app.engine.radiomap import Survey
 from app.engine.site import Emitters
+
+PROGRESS_EVERY = 100
+"""Transmitters fitted between two progress reports."""
 
 MAD_TO_STD = 1.4826
 """σ of a Gaussian per unit of median absolute deviation."""
@@ -357,6 +361,7 @@ def calibrate(
     params: CalibrationParams,
     *,
     known: dict[int, tuple[int, float, float, float]] | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> list[TransmitterFit]:
     """Calibrate every transmitter with at least ``min_readings`` readings on its floor.
 
@@ -368,6 +373,8 @@ def calibrate(
         Fitting constants.
     known : dict, optional
         Transmitter index → (floor, x, y, z) from the map; those fit A, B, σ only.
+    progress : callable, optional
+        Called now and then with the fraction of transmitters done.
 
     Returns
     -------
@@ -388,7 +395,10 @@ def calibrate(
         for f in np.unique(survey.scan_floor)
     }
     out: list[TransmitterFit] = []
-    for idx in np.split(order, cuts) if order.size else []:
+    groups = np.split(order, cuts) if order.size else []
+    for done, idx in enumerate(groups):
+        if progress is not None and done % PROGRESS_EVERY == 0:
+            progress(done / len(groups))
         tx = int(survey.reading_tx[idx[0]])
         if tx in known:
             floor, kx, ky, kz = known[tx]

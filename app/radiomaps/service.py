@@ -199,7 +199,7 @@ def compute_build(inputs: BuildInputs, *, progress: Progress | None = None) -> B
         i: (int(tx.floor[i]), float(tx.xyz[i, 0]), float(tx.xyz[i, 1]), float(tx.xyz[i, 2]))
         for i in range(len(tx))
     }
-    fits = calibrate(survey, CALIBRATION, known=known)
+    fits = calibrate(survey, CALIBRATION, known=known, progress=lambda x: report(0.25 + 0.4 * x))
     report(0.65)
     held = cross_validate(
         survey,

@@ -124,6 +124,9 @@ def make_tracker(
     kind: str, engines: SiteEngines, device_id: str, state: dict[str, Any] | None
 ) -> Tracker:
     """Return the device's filter of ``kind``, fresh or restored from its state."""
+    if kind == HMM and not engines.site.radio_maps:
+        # restored as an HMM device on a site whose radio maps are gone
+        kind, state = radio_kind(engines.site), None
     if kind == PF:
         return EngineDevice(engines.pf, device_id, state)
     if kind == HMM:
