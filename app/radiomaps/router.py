@@ -31,8 +31,15 @@ def _lock(site_id: str) -> asyncio.Lock:
     return _locks.setdefault(site_id, asyncio.Lock())
 
 
-async def _build(state: AppState, site_id: str, progress: Any = None) -> dict[str, Any]:
+async def _build(
+    state: AppState, site_id: str, progress: Any = None, job_id: str | None = None
+) -> dict[str, Any]:
     async with _lock(site_id):
+        if job_id is not None:
+            # a job waiting for another build of the site stays queued until it gets the lock
+            await run_in_threadpool(
+                service.update_job, sessions=state.sessions, job_id=job_id, status="running"
+            )
         summary = await run_in_threadpool(
             service.build_site,
             sessions=state.sessions,
@@ -53,11 +60,8 @@ async def _run_job(state: AppState, site_id: str, job_id: str) -> None:
             last[0] = fraction
             service.update_job(sessions=state.sessions, job_id=job_id, progress=fraction)
 
-    await run_in_threadpool(
-        service.update_job, sessions=state.sessions, job_id=job_id, status="running"
-    )
     try:
-        summary = await _build(state, site_id, progress)
+        summary = await _build(state, site_id, progress, job_id)
     except ApiError as exc:
         await run_in_threadpool(
             service.update_job,
