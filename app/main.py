@@ -23,6 +23,7 @@ from app.keys.router import router as keys_router
 from app.ops.router import router as ops_router
 from app.planning.router import router as planning_router
 from app.positions.router import router as positions_router
+from app.radiomaps.router import router as radiomaps_router
 from app.sites.cache import SiteVersions
 from app.sites.router import router as sites_router
 from app.surveys.router import router as surveys_router
@@ -107,6 +108,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ingest_router,
         positions_router,
         surveys_router,
+        radiomaps_router,
         tracks_router,
         planning_router,
     ):

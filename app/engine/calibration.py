@@ -29,6 +29,7 @@ readings are fitted, as the model has no floor-attenuation term.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
@@ -38,6 +39,9 @@ from scipy.spatial import cKDTree
 from app.engine.pathloss import expected_rssi
 from app.engine.radiomap import Survey
 from app.engine.site import Emitters
+
+PROGRESS_EVERY = 100
+"""Transmitters fitted between two progress reports."""
 
 MAD_TO_STD = 1.4826
 """σ of a Gaussian per unit of median absolute deviation."""
@@ -83,6 +87,11 @@ class CalibrationParams:
     b_plausible : tuple of float
         Range of B (dB per ln-metre) a sound fit lands in: indoor path-loss
         exponents 2–4 with 10 log10 e ≈ 4.34 dB per ln-metre each, widened.
+    a_plausible : tuple of float
+        Range of A (dBm at 1 m) a sound fit lands in: phones hear WiFi access
+        points at about -30 to -50 dBm and BLE beacons at about -55 to -75 dBm
+        from 1 m. A fit outside (on site1, hundreds pinned at the 0 dBm bound
+        with a steep B) traded A against B and position, and is not used.
     b_bounds : tuple of float
         Bounds of B in the solver.
     a_bounds : tuple of float
@@ -106,6 +115,7 @@ class CalibrationParams:
     min_spread_m: float = 2.0
     strongest: int = 5
     b_plausible: tuple[float, float] = (5.0, 40.0)
+    a_plausible: tuple[float, float] = (-90.0, -20.0)
     b_bounds: tuple[float, float] = (0.5, 80.0)
     a_bounds: tuple[float, float] = (-120.0, 0.0)
     position_margin_m: float = 15.0
@@ -138,7 +148,8 @@ class TransmitterFit:
     converged : bool
         The solver reported convergence.
     plausible : bool
-        Converged, enough readings and spread, B within ``b_plausible``.
+        Converged, enough readings and spread, B within ``b_plausible`` and A
+        within ``a_plausible``.
     position_known : bool
         x, y came from the map and were not fitted.
     """
@@ -208,6 +219,55 @@ def _residuals(
     return np.concatenate([e, np.sqrt(np.maximum(-2.0 * log_l, 0.0))])
 
 
+def _jacobian(
+    theta: np.ndarray,
+    xy: np.ndarray,
+    rssi: np.ndarray,
+    censored_xy: np.ndarray,
+    sigma: float,
+    dz: float,
+    known_xy: np.ndarray | None,
+    params: CalibrationParams,
+) -> np.ndarray:
+    """Return ∂ residuals / ∂ θ of ``_residuals``, shape (n + c, len(θ)).
+
+    Analytic, so the solver does not spend len(θ) extra residual evaluations
+    per iteration on finite differences (the bulk of a site's calibration time).
+    """
+    fit_xy = known_xy is None
+    tx_xy, A, B = (theta[:2], theta[2], theta[3]) if fit_xy else (known_xy, theta[0], theta[1])
+
+    def pred_and_grad(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = points - tx_xy
+        r2 = np.sum(d * d, axis=1) + dz * dz
+        # pred = A - B ln r, with ln r = ½ ln r²
+        half_ln_r2 = 0.5 * np.log(r2)
+        pred = A - B * half_ln_r2
+        # ∂pred/∂A = 1, ∂pred/∂B = -ln r, ∂pred/∂t = B (p - t) / r²
+        cols = [np.ones(points.shape[0]), -half_ln_r2]
+        grad = np.column_stack([B * d / r2[:, None], *cols] if fit_xy else cols)
+        return pred, grad
+
+    pred, g = pred_and_grad(xy)
+    # ∂e/∂θ = -∂pred/∂θ / σ; zero where a saturated reading's residual is clipped at 0
+    jac = -g / sigma
+    jac[(rssi >= params.saturation_dbm) & (rssi < pred)] = 0.0
+    if censored_xy.shape[0] == 0:
+        return jac
+    pred_c, g_c = pred_and_grad(censored_xy)
+    m = params.miss_prob
+    z = (params.sensitivity_dbm - pred_c) / sigma
+    log_l = np.logaddexp(np.log(m), np.log1p(-m) + special.log_ndtr(z))
+    c = np.sqrt(np.maximum(-2.0 * log_l, 0.0))
+    # ∂ln L/∂z = (1 - m) φ(z) / L, computed in logs
+    log_pdf = -0.5 * z * z - 0.5 * np.log(2.0 * np.pi)
+    dlogl_dz = np.exp(np.log1p(-m) + log_pdf - log_l)
+    # c = sqrt(-2 ln L): ∂c = -∂ln L / c, with ∂z = -∂pred / σ
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(c > 1e-12, dlogl_dz / (c * sigma), 0.0)
+    return np.vstack([jac, scale[:, None] * g_c])
+
+
 def fit_path_loss(
     xy: np.ndarray,
     rssi: np.ndarray,
@@ -266,6 +326,7 @@ def fit_path_loss(
             _residuals,
             np.clip(theta, lower, upper),
             bounds=(lower, upper),
+            jac=_jacobian,
             loss="soft_l1",
             f_scale=params.f_scale,
             args=(xy, rssi, cxy, sigma, dz, known, params),
@@ -307,6 +368,7 @@ def calibrate(
     params: CalibrationParams,
     *,
     known: dict[int, tuple[int, float, float, float]] | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> list[TransmitterFit]:
     """Calibrate every transmitter with at least ``min_readings`` readings on its floor.
 
@@ -318,6 +380,8 @@ def calibrate(
         Fitting constants.
     known : dict, optional
         Transmitter index → (floor, x, y, z) from the map; those fit A, B, σ only.
+    progress : callable, optional
+        Called now and then with the fraction of transmitters done.
 
     Returns
     -------
@@ -338,7 +402,10 @@ def calibrate(
         for f in np.unique(survey.scan_floor)
     }
     out: list[TransmitterFit] = []
-    for idx in np.split(order, cuts) if order.size else []:
+    groups = np.split(order, cuts) if order.size else []
+    for done, idx in enumerate(groups):
+        if progress is not None and done % PROGRESS_EVERY == 0:
+            progress(done / len(groups))
         tx = int(survey.reading_tx[idx[0]])
         if tx in known:
             floor, kx, ky, kz = known[tx]
@@ -368,7 +435,11 @@ def calibrate(
         fit = fit_path_loss(
             xy, rssi, tx_params, censored_xy=survey.scan_xy[near], position=position
         )
-        plausible = fit.converged and p.b_plausible[0] <= fit.B <= p.b_plausible[1]
+        plausible = (
+            fit.converged
+            and p.b_plausible[0] <= fit.B <= p.b_plausible[1]
+            and p.a_plausible[0] <= fit.A <= p.a_plausible[1]
+        )
         out.append(
             TransmitterFit(
                 tx=tx,

@@ -48,6 +48,9 @@ from app.engine.radiomap import RadioMap
 from app.engine.samples import Batch, Estimate
 from app.engine.wknn import Fingerprints, scans_of, unique_readings
 
+_PDR_KEYS = tuple(Pdr().snapshot())
+"""Keys of a PDR snapshot; those holding None are left out of the HMM's snapshot."""
+
 R68_2D = 1.5096
 """Radius, in σ of an isotropic 2-D Gaussian, holding 68% of it: sqrt(χ²₂(0.68))."""
 
@@ -415,14 +418,14 @@ class HmmTracker:
             "steps_length": self.steps.length.copy(),
             "steps_heading": self.steps.heading.copy(),
         }
+        # None (not yet known) is left out: snapshots hold numbers and arrays only
         for key, value in self.pdr.snapshot().items():
-            state[f"pdr.{key}"] = value
+            if value is not None:
+                state[f"pdr.{key}"] = value
         return state
 
     def _restore(self, state: dict[str, Any]) -> None:
-        self.pdr = Pdr.from_snapshot(
-            {k[4:]: v for k, v in state.items() if k.startswith("pdr.")}, self.pdr_params
-        )
+        self.pdr = Pdr.from_snapshot({k: state.get(f"pdr.{k}") for k in _PDR_KEYS}, self.pdr_params)
         self.map = int(state["map"])
         self.floor_logp = np.asarray(state["floor_logp"], dtype=float)
         self.prob = np.zeros(int(state["n_points"]))

@@ -7,6 +7,7 @@ from fastapi import APIRouter, Response
 from app.core.deps import AdminDep, PrincipalDep, SessionDep, SiteReaderDep
 from app.core.errors import ApiError
 from app.core.schemas import LimitQuery, OffsetQuery, Page, SiteIdPath
+from app.core.state import StateDep
 from app.sites import service
 from app.sites.deps import SiteDep
 from app.sites.schemas import SiteRead, SiteUpsert
@@ -16,11 +17,18 @@ router = APIRouter(prefix="/v1/sites", tags=["sites"])
 
 @router.put("/{site_id}", response_model=SiteRead)
 def put_site(
-    _: AdminDep, site_id: SiteIdPath, body: SiteUpsert, db: SessionDep, response: Response
+    _: AdminDep,
+    site_id: SiteIdPath,
+    body: SiteUpsert,
+    db: SessionDep,
+    state: StateDep,
+    response: Response,
 ) -> SiteRead:
-    """Create the site or update its name and engine configuration."""
+    """Create the site or update its name and engine (``pf`` or ``hmm``)."""
     site, created = service.upsert_site(db=db, site_id=site_id, body=body)
     db.commit()
+    # ingest on this node tags batches with the new version at once, so workers reload
+    state.sites.invalidate(site_id)
     response.status_code = 201 if created else 200
     return SiteRead.model_validate(site)
 

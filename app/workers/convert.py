@@ -13,7 +13,8 @@ _NAN3 = (np.nan, np.nan, np.nan)
 _A = TypeVar("_A")
 
 
-def _radio_id(kind: str, raw: str) -> str:
+def radio_id(kind: str, raw: str) -> str:
+    """Return the transmitter table key of a radio sample id of ``kind``."""
     # MAC addresses are case-insensitive; iBeacon ids are UUID_major_minor as given.
     return raw.lower() if kind == "wifi" or ":" in raw else raw
 
@@ -26,7 +27,7 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
     rssi: list[float] = []
     for kind in ("wifi", "ble"):
         for s in samples.get(kind, ()):
-            row = site.transmitter_index.get(_radio_id(kind, s["id"]))
+            row = site.transmitter_index.get(radio_id(kind, s["id"]))
             if row is None:
                 unknown += 1
                 continue

@@ -27,7 +27,15 @@ from app.workers import snapshots
 from app.workers.device import DeviceSession
 from app.workers.sites import load_site
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
-from app.workers.trackers import EngineDevice, SiteEngines, choose_kind, kind_of, make_tracker
+from app.workers.trackers import (
+    RADIO_KINDS,
+    EngineDevice,
+    SiteEngines,
+    choose_kind,
+    kind_of,
+    make_tracker,
+    radio_kind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +110,10 @@ class Shard:
         if device.tracker is not None:
             kind, state = kind_of(device.tracker), device.tracker.snapshot()
             self._close_tracker(device)
+            wanted = radio_kind(engines.site)
+            if kind in RADIO_KINDS and device.kinds & {"wifi", "ble"} and wanted != kind:
+                # a build or an engine change gave the site a better filter for this device
+                kind, state = wanted, None
             device.tracker = make_tracker(kind, engines, device.device_id, state)
         device.site = engines.site
 

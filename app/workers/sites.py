@@ -8,13 +8,21 @@ from typing import Any
 import numpy as np
 import shapely
 from shapely.geometry.base import BaseGeometry
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.engine.radiomap import RadioMap
 from app.engine.site import Emitters, Floor, SiteModel
 from app.floors.service import list_floors
 from app.geometry.floormap import Emitter, parse_floor_map
 from app.geometry.raster import floor_plan
+from app.radiomaps.codec import decode_map
+from app.radiomaps.models import CalibratedTransmitter, RadioMapFloor
 from app.sites.models import Site
+
+SURVEYED_TX_HEIGHT_M = 3.0
+"""Height (m) given to a transmitter known only from the radio map (no fit): the
+calibration's nominal ceiling mount."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +48,8 @@ class LoadedSite:
     anchor_index: dict[str, int]
     locator_index: dict[str, int]
     zones: tuple[Zone, ...]
+    engine: str = "pf"
+    radio_maps: tuple[RadioMap, ...] = ()
 
     def has_pathloss(self) -> bool:
         """Return whether any transmitter has a complete path-loss model."""
@@ -61,8 +71,98 @@ def _emitters(rows: list[tuple[int, Emitter]]) -> Emitters:
     )
 
 
-def load_site(*, db: Session, site: Site, raster_cell: float) -> LoadedSite:
-    """Build the site's engine view from its stored floors."""
+def _with_radiomap(
+    db: Session, site_id: str, table: Emitters, floor_index: dict[str, int]
+) -> tuple[Emitters, tuple[RadioMap, ...]]:
+    """Return the transmitter table completed by the site's build, and its radio maps.
+
+    Map transmitters keep what the map says; where it lacks A, B or sigma, a
+    plausible fit fills them. Transmitters the map does not have are appended:
+    fitted ones with their fitted floor and position (path loss only when the
+    fit is plausible), the others (in a radio map but too rarely heard to fit)
+    at the reference point where they are strongest, without path loss. Radio
+    map columns are renumbered into this table.
+    """
+    fits = db.scalars(
+        select(CalibratedTransmitter)
+        .where(CalibratedTransmitter.site_id == site_id)
+        .order_by(CalibratedTransmitter.transmitter_id)
+    ).all()
+    rows = db.scalars(
+        select(RadioMapFloor)
+        .where(RadioMapFloor.site_id == site_id)
+        .order_by(RadioMapFloor.floor_id)
+    ).all()
+    if not fits and not rows:
+        return table, ()
+    ids = list(table.ids)
+    index = {tx: i for i, tx in enumerate(ids)}
+    floor = list(table.floor)
+    xyz = [tuple(v) for v in table.xyz]
+    A, B, sigma = list(table.A), list(table.B), list(table.sigma)
+
+    def add(tx: str, f: int, pos: tuple[float, float, float]) -> int:
+        index[tx] = len(ids)
+        ids.append(tx)
+        floor.append(f)
+        xyz.append(pos)
+        A.append(np.nan)
+        B.append(np.nan)
+        sigma.append(np.nan)
+        return index[tx]
+
+    for fit in fits:
+        if fit.floor_id not in floor_index:
+            continue
+        i = index.get(fit.transmitter_id)
+        if i is None:
+            i = add(fit.transmitter_id, floor_index[fit.floor_id], (fit.x, fit.y, fit.z))
+        if fit.plausible and not np.isfinite(A[i] + B[i] + sigma[i]):
+            A[i], B[i], sigma[i] = fit.A, fit.B, fit.sigma
+    maps = []
+    for row in rows:
+        if row.floor_id not in floor_index:
+            continue
+        m = decode_map(row.data)
+        f = floor_index[row.floor_id]
+        columns = np.empty(len(row.transmitters), dtype=np.int32)
+        for c, tx in enumerate(row.transmitters):
+            if tx not in index:
+                # strongest reference point: argmax of the column's mean RSSI
+                p = int(np.nanargmax(np.where(np.isfinite(m.mean[:, c]), m.mean[:, c], -np.inf)))
+                x, y = m.xy[p]
+                add(tx, f, (float(x), float(y), SURVEYED_TX_HEIGHT_M))
+            columns[c] = index[tx]
+        maps.append(
+            RadioMap(
+                floor=f,
+                cell=m.cell,
+                origin=m.origin,
+                shape=m.shape,
+                ij=m.ij,
+                tx=columns,
+                mean=m.mean,
+                var=m.var,
+                detect=m.detect,
+                weight=m.weight,
+            )
+        )
+    completed = Emitters(
+        ids=tuple(ids),
+        floor=np.array(floor, dtype=np.int32),
+        xyz=np.array(xyz, dtype=float).reshape(-1, 3),
+        A=np.array(A, dtype=float),
+        B=np.array(B, dtype=float),
+        sigma=np.array(sigma, dtype=float),
+    )
+    return completed, tuple(sorted(maps, key=lambda m: m.floor))
+
+
+def load_site(
+    *, db: Session, site: Site, raster_cell: float, with_radiomap: bool = True
+) -> LoadedSite:
+    """Build the site's engine view from its stored floors and (unless told not to) its
+    latest radio-map build."""
     floors: list[Floor] = []
     zones: list[Zone] = []
     emitters: dict[str, list[tuple[int, Emitter]]] = {
@@ -85,6 +185,12 @@ def load_site(*, db: Session, site: Site, raster_cell: float) -> LoadedSite:
         for emitter in fmap.emitters:
             emitters[emitter.kind].append((index, emitter))
     tables = {kind: _emitters(items) for kind, items in emitters.items()}
+    floor_index = {f.floor_id: i for i, f in enumerate(floors)}
+    radio_maps: tuple[RadioMap, ...] = ()
+    if with_radiomap:
+        tables["transmitter"], radio_maps = _with_radiomap(
+            db, site.id, tables["transmitter"], floor_index
+        )
     model = SiteModel(
         site_id=site.id,
         floors=tuple(floors),
@@ -98,9 +204,11 @@ def load_site(*, db: Session, site: Site, raster_cell: float) -> LoadedSite:
         config=dict(site.config or {}),
         model=model,
         floor_ids=tuple(f.floor_id for f in floors),
-        floor_index={f.floor_id: i for i, f in enumerate(floors)},
+        floor_index=floor_index,
         transmitter_index=tables["transmitter"].index(),
         anchor_index=tables["anchor"].index(),
         locator_index=tables["locator"].index(),
         zones=tuple(zones),
+        engine=site.engine or "pf",
+        radio_maps=radio_maps,
     )

@@ -4,7 +4,9 @@ A device's kind is chosen from its first samples and the site's infrastructure:
 UWB ranges or fixes → the UWB + inertial EKF (``uwb``); sightings by fixed
 locators → the locator tracker (``locator``); RSSI of transmitters with a
 path-loss model → the particle filter (``pf``), whose devices share one
-batched engine per site; otherwise the weighted centroid.
+batched engine per site, or, where the site chose the ``hmm`` engine and has a
+built radio map, the fingerprint + inertial HMM (``hmm``); otherwise the
+weighted centroid.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from typing import Any
 
 from app.engine.centroid import CentroidParams, WeightedCentroid
 from app.engine.ekf import LocatorTracker, LocatorTrackerParams, UwbTracker, UwbTrackerParams
+from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
 from app.engine.particle import build_floor_models
 from app.engine.positioning import PositioningEngine, PositioningParams
 from app.engine.samples import Batch, Estimate
@@ -24,6 +27,9 @@ PF = "pf"
 CENTROID = "centroid"
 UWB = "uwb"
 LOCATOR = "locator"
+HMM = "hmm"
+RADIO_KINDS = frozenset({PF, HMM, CENTROID})
+"""Kinds that position a device from RSSI of the site's transmitters."""
 
 
 @dataclass(eq=False)
@@ -33,6 +39,8 @@ class SiteEngines:
     site: LoadedSite
     params: PositioningParams
     _pf: PositioningEngine | None = field(default=None, repr=False)
+    _hmm: EmissionModel | None = field(default=None, repr=False)
+    hmm_params: HmmParams = field(default_factory=HmmParams)
 
     @property
     def pf(self) -> PositioningEngine:
@@ -41,6 +49,13 @@ class SiteEngines:
             models = build_floor_models(self.site.model, self.params.filter)
             self._pf = PositioningEngine(self.site.model, self.params, models)
         return self._pf
+
+    @property
+    def hmm(self) -> EmissionModel:
+        """Return the site's radio-map emission tables (shared by its HMM devices), built once."""
+        if self._hmm is None:
+            self._hmm = EmissionModel(self.site.radio_maps, self.hmm_params)
+        return self._hmm
 
 
 class EngineDevice:
@@ -79,17 +94,47 @@ def choose_kind(site: LoadedSite, batch: Batch, kinds: set[str]) -> str:
         return UWB
     if "sightings" in kinds:
         return LOCATOR
-    if len(batch.rssi) and site.has_pathloss():
+    if len(batch.rssi):
+        return radio_kind(site)
+    return CENTROID
+
+
+def radio_kind(site: LoadedSite) -> str:
+    """Return the filter for a device that sends RSSI of the site's transmitters."""
+    if site.engine == HMM and site.radio_maps:
+        return HMM
+    if site.has_pathloss():
         return PF
     return CENTROID
+
+
+def _hmm_state_fits(model: EmissionModel, state: dict[str, Any]) -> bool:
+    """Return whether an HMM snapshot belongs to radio maps shaped like ``model``'s."""
+    m = int(state.get("map", -1))
+    if m < 0:
+        return int(state.get("n_points", 0)) == 0 and len(state["floor_logp"]) == len(model.maps)
+    return (
+        m < len(model.maps)
+        and int(state["n_points"]) == model.n_points(m)
+        and len(state["floor_logp"]) == len(model.maps)
+    )
 
 
 def make_tracker(
     kind: str, engines: SiteEngines, device_id: str, state: dict[str, Any] | None
 ) -> Tracker:
     """Return the device's filter of ``kind``, fresh or restored from its state."""
+    if kind == HMM and not engines.site.radio_maps:
+        # restored as an HMM device on a site whose radio maps are gone
+        kind, state = radio_kind(engines.site), None
     if kind == PF:
         return EngineDevice(engines.pf, device_id, state)
+    if kind == HMM:
+        model = engines.hmm
+        if state is not None and not _hmm_state_fits(model, state):
+            # the radio map was rebuilt: the old distribution has no meaning on the new points
+            state = None
+        return HmmTracker(model, engines.hmm_params, state=state)
     if kind == UWB:
         return UwbTracker(engines.site.model, UwbTrackerParams(), state)
     if kind == LOCATOR:
@@ -99,5 +144,5 @@ def make_tracker(
 
 def kind_of(tracker: Tracker) -> str:
     """Return the kind a tracker was made as."""
-    kinds = {EngineDevice: PF, UwbTracker: UWB, LocatorTracker: LOCATOR}
+    kinds = {EngineDevice: PF, UwbTracker: UWB, LocatorTracker: LOCATOR, HmmTracker: HMM}
     return kinds.get(type(tracker), CENTROID)

@@ -1,0 +1,94 @@
+"""Response bodies of the radio-map build API."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel
+
+
+class FloorBuild(BaseModel):
+    """One floor's radio map: reference points and how much of the walkable area they cover."""
+
+    floor_id: str
+    surveys: int
+    scans: int
+    reference_points: int
+    walkable_cells: int
+    coverage: float | None
+    transmitters: int
+
+
+class TransmitterCalibration(BaseModel):
+    """One transmitter's fit and its quality figures."""
+
+    id: str
+    floor_id: str
+    x: float | None
+    y: float | None
+    z: float | None
+    A: float | None
+    B: float | None
+    sigma: float | None
+    n_readings: int
+    n_censored: int
+    spread_m: float | None
+    converged: bool
+    plausible: bool
+    position_known: bool
+
+
+class CalibrationSummary(BaseModel):
+    """Transmitters calibrated, how many fits are plausible, and each fit."""
+
+    calibrated: int
+    plausible: int
+    positions_fitted: int
+    median_A: float | None
+    median_B: float | None
+    median_sigma_db: float | None
+    transmitters: list[TransmitterCalibration]
+
+
+class HeldOutAccuracy(BaseModel):
+    """Errors of scans located on maps built without their walk (walk-level k-fold)."""
+
+    method: Literal["wknn"]
+    folds: int
+    scans: int
+    mean_error_m: float | None
+    p50_error_m: float | None
+    p90_error_m: float | None
+    floor_error_rate: float | None
+
+
+class BuildSummary(BaseModel):
+    """What a build produced; ``accuracy`` is null with fewer than two survey walks."""
+
+    site_id: str
+    surveys: int
+    scans: int
+    readings: int
+    transmitters_heard: int
+    floors: list[FloorBuild]
+    calibration: CalibrationSummary
+    accuracy: HeldOutAccuracy | None
+    map_version: int | None = None
+    elapsed_ms: float | None = None
+
+
+class BuildAccepted(BaseModel):
+    """An asynchronous build was queued."""
+
+    job_id: str
+
+
+class BuildJobRead(BaseModel):
+    """An asynchronous build's state; ``summary`` once done, ``error`` once failed."""
+
+    job_id: str
+    site_id: str
+    status: Literal["queued", "running", "done", "failed"]
+    progress: float
+    summary: BuildSummary | None
+    error: str | None

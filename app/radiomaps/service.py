@@ -1,0 +1,378 @@
+"""Building a site's radio maps and transmitter calibration from its surveys, and storing them.
+
+A build has three phases so the heavy middle one needs no database session:
+``load_inputs`` reads the site (floors, map transmitters) and its surveys;
+``compute_build`` turns them into per-floor radio maps, transmitter fits and
+a summary with a held-out accuracy estimate (pure numpy, deterministic);
+``store_build`` replaces the site's stored result in one transaction and bumps
+the site's map version, so the workers reload the site and use it at once.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core.db import session_scope
+from app.core.errors import ApiError
+from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
+from app.engine.crossval import cross_validate
+from app.engine.radiomap import (
+    RadioMap,
+    RadioMapParams,
+    Survey,
+    build_radio_map,
+    locate_scans,
+    walkable_cells,
+)
+from app.engine.samples import RssiReadings
+from app.engine.wknn import WknnParams
+from app.radiomaps.codec import encode_map
+from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
+from app.sites.models import Site
+from app.sites.service import bump_map_version
+from app.surveys.models import Survey as SurveyRow
+from app.surveys.service import survey_samples
+from app.workers.convert import radio_id
+from app.workers.sites import LoadedSite, load_site
+
+RADIO_MAP = RadioMapParams()
+CALIBRATION = CalibrationParams()
+WKNN = WknnParams()
+FOLDS = 5
+"""Cross-validation folds (whole walks are held out)."""
+
+Progress = Callable[[float], None]
+
+
+@dataclass(frozen=True)
+class SurveyInput:
+    """One stored survey reduced to what a build reads."""
+
+    survey_id: int
+    floor_id: str
+    waypoints: np.ndarray
+    t: np.ndarray
+    ids: list[str]
+    rssi: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class BuildInputs:
+    """What a build reads from the database."""
+
+    site: LoadedSite
+    surveys: tuple[SurveyInput, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class BuildResult:
+    """What a build stores: maps by floor id, fits, the transmitter ids and the summary."""
+
+    maps: dict[str, RadioMap]
+    fits: list[TransmitterFit]
+    tx_ids: tuple[str, ...]
+    floor_ids: tuple[str, ...]
+    summary: dict[str, Any]
+
+
+def count_surveys(*, db: Session, site_id: str) -> int:
+    """Return the number of surveys stored for the site."""
+    return db.scalar(select(func.count()).where(SurveyRow.site_id == site_id)) or 0
+
+
+def check_buildable(*, db: Session, site: Site) -> None:
+    """Answer 409 when the site has nothing to build from (no floors or no surveys)."""
+    if count_surveys(db=db, site_id=site.id) == 0:
+        raise ApiError(
+            409,
+            f"site '{site.id}' has no surveys: upload survey walks "
+            f"(POST /v1/sites/{site.id}/surveys) before building its radio map",
+            code="no_surveys",
+        )
+
+
+def _survey_input(row: SurveyRow) -> SurveyInput:
+    samples = survey_samples(row)
+    wp = np.array([[w["t"], w["x"], w["y"]] for w in samples["waypoints"]], dtype=float)
+    t: list[int] = []
+    ids: list[str] = []
+    rssi: list[float] = []
+    # WiFi only: a WiFi scan reports every access point heard at one time, the unit a
+    # fingerprint is made of; BLE advertisements arrive one by one, each with its own time,
+    # and taken as scans they would read as scans that missed every access point.
+    for s in samples.get("wifi", ()):
+        t.append(int(s["t"]))
+        ids.append(radio_id("wifi", s["id"]))
+        rssi.append(float(s["rssi"]))
+    return SurveyInput(
+        survey_id=row.id,
+        floor_id=row.floor_id,
+        waypoints=wp.reshape(-1, 3),
+        t=np.array(t, dtype=np.int64),
+        ids=ids,
+        rssi=np.array(rssi, dtype=float),
+    )
+
+
+def load_inputs(*, db: Session, site: Site, raster_cell: float) -> BuildInputs:
+    """Read the site as its floor maps give it (no earlier build) and its surveys, by id."""
+    check_buildable(db=db, site=site)
+    loaded = load_site(db=db, site=site, raster_cell=raster_cell, with_radiomap=False)
+    if not loaded.floor_ids:
+        raise ApiError(409, f"site '{site.id}' has no floors", code="no_floors")
+    rows = db.scalars(select(SurveyRow).where(SurveyRow.site_id == site.id).order_by(SurveyRow.id))
+    surveys = tuple(_survey_input(r) for r in rows if r.floor_id in loaded.floor_index)
+    return BuildInputs(site=loaded, surveys=surveys)
+
+
+def _located_survey(inputs: BuildInputs) -> tuple[Survey, tuple[str, ...], np.ndarray]:
+    """Return the scans of every survey located on its waypoints, the transmitter ids, and
+    the survey id of each walk number."""
+    site = inputs.site
+    map_ids = site.model.transmitters.ids
+    heard = sorted({i for s in inputs.surveys for i in s.ids} - set(map_ids))
+    tx_ids = tuple(map_ids) + tuple(heard)
+    index = {tx: i for i, tx in enumerate(tx_ids)}
+    parts = []
+    for walk, s in enumerate(inputs.surveys):
+        tx = np.array([index[i] for i in s.ids], dtype=np.int32)
+        readings = RssiReadings(s.t, tx, s.rssi)
+        parts.append(
+            locate_scans(readings, s.waypoints, floor=site.floor_index[s.floor_id], walk=walk)
+        )
+    survey_ids = np.array([s.survey_id for s in inputs.surveys], dtype=np.int64)
+    return Survey.concat(parts), tx_ids, survey_ids
+
+
+def _r(value: float, digits: int = 3) -> float | None:
+    return None if not np.isfinite(value) else round(float(value), digits)
+
+
+def compute_build(inputs: BuildInputs, *, progress: Progress | None = None) -> BuildResult:
+    """Build every surveyed floor's radio map, calibrate every heard transmitter, and estimate
+    the maps' accuracy on held-out walks. Raises ApiError 409 when no scan can be located."""
+    report = progress or (lambda _: None)
+    site = inputs.site
+    if not inputs.surveys:
+        raise ApiError(409, f"site '{site.site_id}' has no surveys on its current floors")
+    survey, tx_ids, _ = _located_survey(inputs)
+    if survey.n_scans == 0 or survey.reading_rssi.size == 0:
+        raise ApiError(
+            409,
+            "the surveys hold no WiFi scan within their waypoints' time span",
+            code="no_scans",
+        )
+    report(0.1)
+    plans = {i: f.plan for i, f in enumerate(site.model.floors)}
+    maps: dict[str, RadioMap] = {}
+    floors: list[dict[str, Any]] = []
+    for f, floor_id in enumerate(site.floor_ids):
+        on = survey.scan_floor == f
+        if not on.any():
+            continue
+        m = build_radio_map(survey, f, RADIO_MAP, walkable=plans[f])
+        _, mask = walkable_cells(plans[f], RADIO_MAP.cell_m)
+        walkable = int(mask.sum())
+        maps[floor_id] = m
+        floors.append(
+            {
+                "floor_id": floor_id,
+                "surveys": int(np.unique(survey.scan_walk[on]).size),
+                "scans": int(on.sum()),
+                "reference_points": m.n_points,
+                "walkable_cells": walkable,
+                "coverage": _r(m.n_points / walkable if walkable else 0.0, 4),
+                "transmitters": int(m.tx.size),
+            }
+        )
+    report(0.25)
+    tx = site.model.transmitters
+    known = {
+        i: (int(tx.floor[i]), float(tx.xyz[i, 0]), float(tx.xyz[i, 1]), float(tx.xyz[i, 2]))
+        for i in range(len(tx))
+    }
+    fits = calibrate(survey, CALIBRATION, known=known, progress=lambda x: report(0.25 + 0.4 * x))
+    report(0.65)
+    held = cross_validate(
+        survey,
+        plans,
+        RADIO_MAP,
+        WKNN,
+        folds=FOLDS,
+        progress=lambda x: report(0.65 + 0.3 * x),
+    )
+    accuracy: dict[str, Any] | None = None
+    if held is not None:
+        accuracy = {
+            "method": "wknn",
+            "folds": held.folds,
+            "scans": int(held.error_m.size),
+            "mean_error_m": _r(float(np.mean(held.error_m))),
+            "p50_error_m": _r(float(np.median(held.error_m))),
+            "p90_error_m": _r(float(np.percentile(held.error_m, 90))),
+            "floor_error_rate": _r(float(1.0 - np.mean(held.floor_ok)), 4),
+        }
+    plausible = [f for f in fits if f.plausible]
+    summary = {
+        "site_id": site.site_id,
+        "surveys": len(inputs.surveys),
+        "scans": survey.n_scans,
+        "readings": int(survey.reading_rssi.size),
+        "transmitters_heard": int(np.unique(survey.reading_tx).size),
+        "floors": floors,
+        "calibration": {
+            "calibrated": len(fits),
+            "plausible": len(plausible),
+            "positions_fitted": sum(not f.position_known for f in fits),
+            "median_A": _r(float(np.median([f.A for f in plausible])) if plausible else np.nan),
+            "median_B": _r(float(np.median([f.B for f in plausible])) if plausible else np.nan),
+            "median_sigma_db": _r(
+                float(np.median([f.sigma for f in plausible])) if plausible else np.nan
+            ),
+            "transmitters": [_fit_row(f, tx_ids, site.floor_ids) for f in fits],
+        },
+        "accuracy": accuracy,
+    }
+    report(1.0)
+    return BuildResult(
+        maps=maps, fits=fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
+    )
+
+
+def _fit_row(fit: TransmitterFit, tx_ids: tuple[str, ...], floor_ids: tuple[str, ...]) -> dict:
+    return {
+        "id": tx_ids[fit.tx],
+        "floor_id": floor_ids[fit.floor],
+        "x": _r(fit.x),
+        "y": _r(fit.y),
+        "z": _r(fit.z),
+        "A": _r(fit.A),
+        "B": _r(fit.B),
+        "sigma": _r(fit.sigma),
+        "n_readings": fit.n_readings,
+        "n_censored": fit.n_censored,
+        "spread_m": _r(fit.spread_m),
+        "converged": fit.converged,
+        "plausible": fit.plausible,
+        "position_known": fit.position_known,
+    }
+
+
+def store_build(*, db: Session, site: Site, result: BuildResult) -> None:
+    """Replace the site's stored radio maps, fits and summary, and bump its map version."""
+    db.execute(delete(RadioMapFloor).where(RadioMapFloor.site_id == site.id))
+    db.execute(delete(CalibratedTransmitter).where(CalibratedTransmitter.site_id == site.id))
+    db.execute(delete(RadioMapBuild).where(RadioMapBuild.site_id == site.id))
+    db.flush()
+    for floor_id, m in result.maps.items():
+        db.add(
+            RadioMapFloor(
+                site_id=site.id,
+                floor_id=floor_id,
+                n_points=m.n_points,
+                transmitters=[result.tx_ids[t] for t in m.tx],
+                data=encode_map(m),
+            )
+        )
+    for fit in result.fits:
+        db.add(
+            CalibratedTransmitter(
+                site_id=site.id,
+                transmitter_id=result.tx_ids[fit.tx],
+                floor_id=result.floor_ids[fit.floor],
+                x=fit.x,
+                y=fit.y,
+                z=fit.z,
+                A=fit.A,
+                B=fit.B,
+                sigma=fit.sigma,
+                n_readings=fit.n_readings,
+                n_censored=fit.n_censored,
+                spread_m=fit.spread_m,
+                converged=fit.converged,
+                plausible=fit.plausible,
+                position_known=fit.position_known,
+            )
+        )
+    db.add(RadioMapBuild(site_id=site.id, summary=result.summary))
+    bump_map_version(db=db, site=site)
+    db.flush()
+
+
+def build_site(
+    *,
+    sessions: sessionmaker[Session],
+    site_id: str,
+    raster_cell: float,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Run a whole build (read, compute, store) and return the summary with its duration.
+
+    Meant for a worker thread: each phase opens its own short session.
+    """
+    started = time.perf_counter()
+    with session_scope(sessions) as db:
+        site = db.get(Site, site_id)
+        if site is None:
+            raise ApiError(404, f"site '{site_id}' not found")
+        inputs = load_inputs(db=db, site=site, raster_cell=raster_cell)
+    result = compute_build(inputs, progress=progress)
+    with session_scope(sessions) as db:
+        site = db.get(Site, site_id)
+        if site is None:
+            raise ApiError(404, f"site '{site_id}' was deleted during the build")
+        store_build(db=db, site=site, result=result)
+        version = site.map_version
+    elapsed_ms = round((time.perf_counter() - started) * 1000.0, 1)
+    return result.summary | {"map_version": version, "elapsed_ms": elapsed_ms}
+
+
+def get_build(*, db: Session, site_id: str) -> RadioMapBuild | None:
+    """Return the site's stored build summary row, or None when never built."""
+    return db.get(RadioMapBuild, site_id)
+
+
+def create_job(*, db: Session, site_id: str) -> RadioMapJob:
+    """Record a queued asynchronous build."""
+    job = RadioMapJob(id=uuid.uuid4().hex, site_id=site_id, status="queued", progress=0.0)
+    db.add(job)
+    db.flush()
+    return job
+
+
+def update_job(
+    *,
+    sessions: sessionmaker[Session],
+    job_id: str,
+    status: str | None = None,
+    progress: float | None = None,
+    summary: dict[str, Any] | None = None,
+    error: str | None = None,
+) -> None:
+    """Record a job's progress or outcome in its own short transaction."""
+    with session_scope(sessions) as db:
+        job = db.get(RadioMapJob, job_id)
+        if job is None:
+            return
+        if status is not None:
+            job.status = status
+        if progress is not None:
+            job.progress = round(float(progress), 3)
+        if summary is not None:
+            job.summary = summary
+        if error is not None:
+            job.error = error
+
+
+def get_job(*, db: Session, site_id: str, job_id: str) -> RadioMapJob | None:
+    """Return the site's build job, or None (also when it belongs to another site)."""
+    job = db.get(RadioMapJob, job_id)
+    return job if job is not None and job.site_id == site_id else None

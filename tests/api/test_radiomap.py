@@ -1,0 +1,221 @@
+"""Radio-map builds through the API: real site1 walks uploaded as surveys, built, stored,
+rebuilt to the same result, followed as an asynchronous job, and used by the engine (the
+particle filter, and the HMM when the site asks for it). Bad requests change nothing."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+
+from app.datasets import data_dir
+from app.datasets.ilc import read_floor, read_walk, site_walks
+from app.importers.ilc import survey_body, walk_samples
+from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
+from app.sites.models import Site
+from tests.conftest import make_key
+
+SITE1 = data_dir() / "ilc" / "site1"
+FLOOR = "F1"
+N_SURVEYS = 4
+needs_site1 = pytest.mark.skipif(not SITE1.is_dir(), reason="ILC site1 recordings not present")
+
+
+@pytest.fixture(scope="module")
+def walks() -> list[Path]:
+    """The first walks of site1's F1 (by file name): 4 to survey, the 5th to replay."""
+    return [p for f, p in site_walks(SITE1) if f == FLOOR][: N_SURVEYS + 1]
+
+
+@pytest.fixture(scope="module")
+def built_site(client: TestClient, walks: list[Path]) -> dict[str, Any]:
+    """A site with site1's F1 and 4 of its walks as surveys, built once; its summary."""
+    admin = {"Authorization": "Bearer lk_test_admin_key"}
+    sid = f"rm-{uuid.uuid4().hex[:8]}"
+    assert client.put(f"/v1/sites/{sid}", json={"name": sid}, headers=admin).status_code == 201
+    floor = read_floor(SITE1 / FLOOR)
+    assert client.put(
+        f"/v1/sites/{sid}/floors/{FLOOR}", json=floor.geojson, headers=admin
+    ).is_success
+    for path in walks[:N_SURVEYS]:
+        body = survey_body(read_walk(path, FLOOR), device_id="surveyor")
+        r = client.post(f"/v1/sites/{sid}/surveys", json=body, headers=admin)
+        assert r.status_code == 201, r.text
+    r = client.post(f"/v1/sites/{sid}/radiomap/build", headers=admin)
+    assert r.status_code == 200, r.text
+    return {"site_id": sid, "summary": r.json()}
+
+
+def _stored(client: TestClient, site_id: str) -> dict[str, Any]:
+    """Return every stored row of the site's build, as plain values."""
+    with client.app.state.sessions() as db:
+        maps = db.scalars(select(RadioMapFloor).where(RadioMapFloor.site_id == site_id)).all()
+        fits = db.scalars(
+            select(CalibratedTransmitter)
+            .where(CalibratedTransmitter.site_id == site_id)
+            .order_by(CalibratedTransmitter.transmitter_id)
+        ).all()
+        build = db.get(RadioMapBuild, site_id)
+        return {
+            "maps": [(m.floor_id, m.n_points, m.transmitters, m.data) for m in maps],
+            "fits": [
+                {c.name: getattr(f, c.name) for c in CalibratedTransmitter.__table__.columns}
+                for f in fits
+            ],
+            "summary": None if build is None else build.summary,
+        }
+
+
+def _stable(summary: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in summary.items() if k not in ("elapsed_ms", "map_version")}
+
+
+@needs_site1
+def test_build_summary_from_site1_walks(client: TestClient, built_site: dict[str, Any]) -> None:
+    s = built_site["summary"]
+    assert s["surveys"] == N_SURVEYS and s["scans"] > 20 and s["readings"] > s["scans"]
+    [floor] = s["floors"]
+    assert floor["floor_id"] == FLOOR and floor["surveys"] == N_SURVEYS
+    assert 0 < floor["reference_points"] <= floor["walkable_cells"]
+    assert floor["coverage"] == pytest.approx(
+        floor["reference_points"] / floor["walkable_cells"], abs=1e-4
+    )
+    cal = s["calibration"]
+    assert 0 < cal["plausible"] <= cal["calibrated"] == len(cal["transmitters"])
+    # site1's map has no transmitters: every position is fitted
+    assert cal["positions_fitted"] == cal["calibrated"]
+    for tx in cal["transmitters"]:
+        assert tx["floor_id"] == FLOOR and tx["n_readings"] >= 10 and tx["sigma"] >= 2.0
+    acc = s["accuracy"]
+    assert acc["method"] == "wknn" and acc["folds"] == N_SURVEYS and acc["scans"] == s["scans"]
+    assert 0 < acc["p50_error_m"] <= acc["p90_error_m"] and acc["floor_error_rate"] == 0.0
+    stored = _stored(client, built_site["site_id"])
+    assert len(stored["maps"]) == 1 and stored["maps"][0][1] == floor["reference_points"]
+    assert len(stored["fits"]) == cal["calibrated"]
+    assert stored["summary"] == _stable(s)
+    admin = {"Authorization": "Bearer lk_test_admin_key"}
+    got = client.get(f"/v1/sites/{built_site['site_id']}/radiomap", headers=admin)
+    assert got.status_code == 200 and _stable(got.json()) == _stable(s)
+
+
+@needs_site1
+def test_async_rebuild_reports_progress_and_stores_the_same_result(
+    client: TestClient, built_site: dict[str, Any]
+) -> None:
+    sid, admin = built_site["site_id"], {"Authorization": "Bearer lk_test_admin_key"}
+    before = _stored(client, sid)
+    r = client.post(f"/v1/sites/{sid}/radiomap/build?async=true", headers=admin)
+    assert r.status_code == 202, r.text
+    job_id = r.json()["job_id"]
+    seen = []
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        job = client.get(f"/v1/sites/{sid}/radiomap/build/{job_id}", headers=admin).json()
+        seen.append((job["status"], job["progress"]))
+        if job["status"] in ("done", "failed"):
+            break
+        time.sleep(0.2)
+    assert job["status"] == "done", job
+    assert job["progress"] == 1.0 and _stable(job["summary"]) == _stable(built_site["summary"])
+    assert all(0.0 <= p <= 1.0 for _, p in seen)
+    # idempotent: the second build stored exactly what the first did, and no more rows
+    assert _stored(client, sid) == before
+    missing = client.get(f"/v1/sites/{sid}/radiomap/build/nope", headers=admin)
+    assert missing.status_code == 404 and missing.json()["error"]["code"] == "not_found"
+
+
+def _replay(
+    client: TestClient, site_id: str, device: str, path: Path, shift_ms: int = 0
+) -> list[dict[str, Any]]:
+    """Post a walk's WiFi (its times moved by ``shift_ms``) and return the positions."""
+    wifi = [s | {"t": s["t"] + shift_ms} for s in walk_samples(read_walk(path, FLOOR))["wifi"]]
+    body = {"device_id": device, "site_id": site_id, "wifi": wifi}
+    r = client.post("/v1/ingest?wait=true", json=body, headers=make_admin())
+    assert r.status_code == 200, r.text
+    return r.json()["positions"]
+
+
+def make_admin() -> dict[str, str]:
+    """Headers of the bootstrap admin key."""
+    return {"Authorization": "Bearer lk_test_admin_key"}
+
+
+@needs_site1
+def test_devices_get_positions_from_the_build(
+    client: TestClient, built_site: dict[str, Any], walks: list[Path]
+) -> None:
+    sid, admin = built_site["site_id"], make_admin()
+    # before any build a site without path-loss models gives WiFi devices no filter but the
+    # centroid, which knows none of these access points; after it, the particle filter
+    positions = _replay(client, sid, f"{sid}-pf", walks[N_SURVEYS])
+    assert positions and {p["method"] for p in positions} == {"pf"}
+    assert {p["floor_id"] for p in positions} == {FLOOR}
+    r = client.put(f"/v1/sites/{sid}", json={"name": sid, "engine": "hmm"}, headers=admin)
+    assert r.status_code == 200 and r.json()["engine"] == "hmm"
+    assert r.json()["config"] == {"engine": "hmm"}
+    positions = _replay(client, sid, f"{sid}-hmm", walks[N_SURVEYS])
+    assert positions and {p["method"] for p in positions} == {"hmm"}
+    assert all(p["floor_id"] == FLOOR and p["accuracy"] >= 1.0 for p in positions)
+    # the device that started on the particle filter moves to the HMM with the site
+    positions = _replay(client, sid, f"{sid}-pf", walks[N_SURVEYS - 1], shift_ms=86_400_000)
+    assert positions and {p["method"] for p in positions} == {"hmm"}
+    r = client.put(f"/v1/sites/{sid}", json={"name": sid, "engine": "pf"}, headers=admin)
+    assert r.json()["engine"] == "pf"
+
+
+def _counts(client: TestClient, site_id: str) -> tuple[int, int, int, int, int]:
+    with client.app.state.sessions() as db:
+        site = db.get(Site, site_id)
+        return (
+            site.map_version if site else -1,
+            db.scalar(select(func.count()).where(RadioMapJob.site_id == site_id)) or 0,
+            db.scalar(select(func.count()).where(RadioMapBuild.site_id == site_id)) or 0,
+            db.scalar(select(func.count()).where(RadioMapFloor.site_id == site_id)) or 0,
+            db.scalar(select(func.count()).where(CalibratedTransmitter.site_id == site_id)) or 0,
+        )
+
+
+def test_bad_build_requests_get_4xx_and_change_nothing(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    before = _counts(client, site_id)
+    for query in ("", "?async=true"):
+        r = client.post(f"/v1/sites/{site_id}/radiomap/build{query}", headers=admin)
+        assert r.status_code == 409, r.text
+        assert r.json()["error"]["code"] == "no_surveys"
+        assert "no surveys" in r.json()["error"]["message"]
+    r = client.post("/v1/sites/no-such-site/radiomap/build", headers=admin)
+    assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+    viewer = make_key(client, admin, "viewer", site_id)
+    device = make_key(client, admin, "device", site_id)
+    for key in (viewer, device):
+        assert client.post(f"/v1/sites/{site_id}/radiomap/build", headers=key).status_code == 403
+    assert client.post(f"/v1/sites/{site_id}/radiomap/build").status_code == 401
+    assert client.get(f"/v1/sites/{site_id}/radiomap", headers=admin).status_code == 404
+    r = client.get(f"/v1/sites/{site_id}/radiomap/build/{uuid.uuid4().hex}", headers=admin)
+    assert r.status_code == 404
+    assert _counts(client, site_id) == before
+
+
+def test_engine_choice_is_stored_and_validated(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    r = client.get(f"/v1/sites/{site_id}", headers=admin)
+    assert r.json()["engine"] == "pf"
+    version = r.json()["map_version"]
+    for body in (
+        {"name": "x", "engine": "kalman"},
+        {"name": "x", "engine": "hmm", "config": {"engine": "pf"}},
+    ):
+        r = client.put(f"/v1/sites/{site_id}", json=body, headers=admin)
+        assert r.status_code == 422, r.text
+    r = client.put(f"/v1/sites/{site_id}", json={"name": "x", "engine": "hmm"}, headers=admin)
+    assert r.json()["engine"] == "hmm" and r.json()["map_version"] == version + 1
+    # leaving the engine out keeps it
+    r = client.put(f"/v1/sites/{site_id}", json={"name": "y"}, headers=admin)
+    assert r.json()["engine"] == "hmm" and r.json()["map_version"] == version + 1
