@@ -7,7 +7,6 @@ from datetime import datetime
 from sqlalchemy import (
     JSON,
     Boolean,
-    DateTime,
     Float,
     ForeignKey,
     ForeignKeyConstraint,
@@ -18,7 +17,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Mapped, mapped_column
 
-from app.core.db import Base
+from app.core.db import Base, UtcDateTime
 from app.core.time import utcnow
 
 
@@ -31,7 +30,7 @@ class RadioMapBuild(Base):
         String(64), ForeignKey("sites.id", ondelete="CASCADE"), primary_key=True
     )
     summary: Mapped[dict] = mapped_column(JSON)
-    built_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    built_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow)
 
 
 class RadioMapFloor(Base):
@@ -95,7 +94,5 @@ class RadioMapJob(Base):
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     summary: Mapped[dict | None] = mapped_column(JSON)
     error: Mapped[str | None] = mapped_column(Text)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-    updated_at: Mapped[datetime] = mapped_column(
-        DateTime(timezone=True), default=utcnow, onupdate=utcnow
-    )
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow, onupdate=utcnow)
