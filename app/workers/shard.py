@@ -41,6 +41,10 @@ log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
 
+SCAN_EVERY_MS = 100
+"""Quiet and idle devices are looked for at most this often: the scan visits every
+device, and the worker loop calls ``tick`` after each group of messages."""
+
 
 class Shard:
     """Owns the devices of one shard and processes their batches in arrival order."""
@@ -63,6 +67,7 @@ class Shard:
         self.devices: dict[str, DeviceSession] = {}
         self.counters: Counter[str] = Counter()
         self.update_seconds = 0.0
+        self._scanned_at = 0
 
     # -- sites and devices -------------------------------------------------------------
 
@@ -229,8 +234,15 @@ class Shard:
         return positions, events
 
     def tick(self) -> list[Message]:
-        """Flush quiet devices' buffers and filters; evict idle devices (with a snapshot)."""
+        """Flush quiet devices' buffers and filters; evict idle devices (with a snapshot).
+
+        Does nothing within ``SCAN_EVERY_MS`` of the last scan, unless buffers are
+        to be flushed at once (``flush_after_s`` 0, as on shutdown).
+        """
         now = now_ms()
+        if self.settings.flush_after_s > 0 and now - self._scanned_at < SCAN_EVERY_MS:
+            return []
+        self._scanned_at = now
         flush_ms = self.settings.flush_after_s * 1000
         evict_ms = self.settings.idle_evict_s * 1000
         pending = {d.device_id for d in self.devices.values() if d.buffer or d.unflushed}
