@@ -1,9 +1,11 @@
 """Overload: far more devices than the server sustains for a minute, then a light load.
 
-Runs ``--devices`` simulated devices at 1 Hz (``?wait=true``, as in
-``bench/load.py``) against a server of its own (or ``--server``/``--pid``),
+Runs ``--devices`` simulated devices posting at 1 Hz without waiting for their
+positions (input arrives on schedule whatever the backlog; ``--wait`` for the
+closed loop of ``bench/load.py``) against a server of its own (or
+``--server``/``--pid``),
 sampling the server's resident memory (API and workers) every second. Prints
-the answers by status (200, 429, other), the drops the server counted, the
+the answers by status (202 or 200, 429, other), the drops the server counted, the
 memory at start, its peak and its end; then, after the overload stops, runs
 ``--after`` devices for ``--recovery`` seconds and prints their latency and
 failures, to show the server recovered.
@@ -39,12 +41,12 @@ from bench.load import (  # noqa: E402
 
 
 async def _drive(
-    url: str, key: str, devices: int, seconds: float, pids: list[int], prefix: str
+    url: str, key: str, devices: int, seconds: float, pids: list[int], prefix: str, wait: bool
 ) -> tuple[Tally, list[float]]:
     """Run the devices for ``seconds`` while sampling the server's RSS once a second."""
     tally = Tally()
     until = time.monotonic() + seconds
-    tasks = start_devices(url, key, devices, seconds, tally, prefix)
+    tasks = start_devices(url, key, devices, seconds, tally, prefix, wait)
     rss = []
     while time.monotonic() < until:
         rss.append(_rss_mb(pids))
@@ -59,14 +61,16 @@ def run(url: str, key: str, pid: int, args: argparse.Namespace) -> None:
     pids = [pid, *_children(pid)]
     idle_rss = _rss_mb(pids)
     dropped0 = _dropped(url, key)
-    tally, rss = asyncio.run(_drive(url, key, args.devices, args.seconds, pids, "over"))
-    statuses = Counter(200 for _ in tally.http) + Counter(s for _, s in tally.errors)
+    tally, rss = asyncio.run(_drive(url, key, args.devices, args.seconds, pids, "over", args.wait))
+    accepted = 200 if args.wait else 202
+    statuses = Counter(accepted for _ in tally.http) + Counter(s for _, s in tally.errors)
     dropped = _dropped(url, key) - dropped0
     time.sleep(args.pause)
     after_rss = _rss_mb(pids)
-    calm, _ = asyncio.run(_drive(url, key, args.after, args.recovery, pids, "calm"))
+    calm, _ = asyncio.run(_drive(url, key, args.after, args.recovery, pids, "calm", True))
     calm_ms = np.array([v for _, v in calm.http]) * 1000
-    print(f"\noverload: {args.devices} devices at 1 Hz for {args.seconds:.0f} s")
+    loop = "waiting for positions" if args.wait else "not waiting"
+    print(f"\noverload: {args.devices} devices at 1 Hz, {loop}, for {args.seconds:.0f} s")
     print(
         "answers: "
         + ", ".join(f"{status}: {n}" for status, n in sorted(statuses.items()))
@@ -96,6 +100,7 @@ def main() -> None:
     parser.add_argument("--recovery", type=float, default=20.0)
     parser.add_argument("--workers", type=int, default=2, help="own server: worker processes")
     parser.add_argument("--port", type=int, default=8879, help="own server: port")
+    parser.add_argument("--wait", action="store_true", help="devices wait for their positions")
     parser.add_argument("--overload-policy", choices=("reject", "latest"), default="reject")
     args = parser.parse_args()
     if args.server and args.pid is None:
