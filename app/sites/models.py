@@ -19,7 +19,7 @@ class Site(Base):
     id: Mapped[str] = mapped_column(String(64), primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
     config: Mapped[dict] = mapped_column(JSON, default=dict)
-    engine: Mapped[str] = mapped_column(String(8), default="pf", server_default="pf")
+    engine: Mapped[str] = mapped_column(String(8), default="hmm", server_default="hmm")
     map_version: Mapped[int] = mapped_column(Integer, default=0)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow, onupdate=utcnow)

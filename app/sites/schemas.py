@@ -13,7 +13,7 @@ class SiteConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    engine: Literal["pf", "hmm"] = "pf"
+    engine: Literal["pf", "hmm"] = "hmm"
 
 
 EngineName = Literal["pf", "hmm"]

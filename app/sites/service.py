@@ -21,14 +21,14 @@ def upsert_site(*, db: Session, site_id: str, body: SiteUpsert) -> tuple[Site, b
     site = db.get(Site, site_id)
     created = site is None
     if site is None:
-        site = Site(id=site_id, name=body.name, config={}, engine="pf", map_version=0)
+        site = Site(id=site_id, name=body.name, config={}, engine="hmm", map_version=0)
         db.add(site)
     site.name = body.name
     engine = body.chosen_engine()
     if body.config is not None or (engine is not None and engine != site.engine):
         if engine is not None:
             site.engine = engine
-        site.config = {"engine": site.engine or "pf"}
+        site.config = {"engine": site.engine or "hmm"}
         # the engine choice decides which filter new devices get: workers must reload
         site.map_version = (site.map_version or 0) + 1
     db.flush()

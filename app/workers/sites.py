@@ -48,7 +48,7 @@ class LoadedSite:
     anchor_index: dict[str, int]
     locator_index: dict[str, int]
     zones: tuple[Zone, ...]
-    engine: str = "pf"
+    engine: str = "hmm"
     radio_maps: tuple[RadioMap, ...] = ()
 
     def has_pathloss(self) -> bool:
@@ -209,6 +209,6 @@ def load_site(
         anchor_index=tables["anchor"].index(),
         locator_index=tables["locator"].index(),
         zones=tuple(zones),
-        engine=site.engine or "pf",
+        engine=site.engine or "hmm",
         radio_maps=radio_maps,
     )

@@ -20,7 +20,7 @@ def upgrade() -> None:
     """Apply this revision."""
     with op.batch_alter_table("sites", schema=None) as batch_op:
         batch_op.add_column(
-            sa.Column("engine", sa.String(length=8), server_default="pf", nullable=False)
+            sa.Column("engine", sa.String(length=8), server_default="hmm", nullable=False)
         )
     op.create_table(
         "radiomap_builds",

@@ -150,22 +150,22 @@ def test_devices_get_positions_from_the_build(
     client: TestClient, built_site: dict[str, Any], walks: list[Path]
 ) -> None:
     sid, admin = built_site["site_id"], make_admin()
-    # before any build a site without path-loss models gives WiFi devices no filter but the
-    # centroid, which knows none of these access points; after it, the particle filter
-    positions = _replay(client, sid, f"{sid}-pf", walks[N_SURVEYS])
-    assert positions and {p["method"] for p in positions} == {"pf"}
-    assert {p["floor_id"] for p in positions} == {FLOOR}
-    r = client.put(f"/v1/sites/{sid}", json={"name": sid, "engine": "hmm"}, headers=admin)
-    assert r.status_code == 200 and r.json()["engine"] == "hmm"
-    assert r.json()["config"] == {"engine": "hmm"}
+    # a site with a radio map positions WiFi devices with the HMM by default (it measures
+    # better on site1); the particle filter gets the calibrated transmitters when chosen
     positions = _replay(client, sid, f"{sid}-hmm", walks[N_SURVEYS])
     assert positions and {p["method"] for p in positions} == {"hmm"}
     assert all(p["floor_id"] == FLOOR and p["accuracy"] >= 1.0 for p in positions)
-    # the device that started on the particle filter moves to the HMM with the site
-    positions = _replay(client, sid, f"{sid}-pf", walks[N_SURVEYS - 1], shift_ms=86_400_000)
-    assert positions and {p["method"] for p in positions} == {"hmm"}
     r = client.put(f"/v1/sites/{sid}", json={"name": sid, "engine": "pf"}, headers=admin)
-    assert r.json()["engine"] == "pf"
+    assert r.status_code == 200 and r.json()["engine"] == "pf"
+    assert r.json()["config"] == {"engine": "pf"}
+    positions = _replay(client, sid, f"{sid}-pf", walks[N_SURVEYS])
+    assert positions and {p["method"] for p in positions} == {"pf"}
+    assert {p["floor_id"] for p in positions} == {FLOOR}
+    # the device that started on the HMM moves to the particle filter with the site
+    positions = _replay(client, sid, f"{sid}-hmm", walks[N_SURVEYS - 1], shift_ms=86_400_000)
+    assert positions and {p["method"] for p in positions} == {"pf"}
+    r = client.put(f"/v1/sites/{sid}", json={"name": sid, "engine": "hmm"}, headers=admin)
+    assert r.json()["engine"] == "hmm"
 
 
 def _counts(client: TestClient, site_id: str) -> tuple[int, int, int, int, int]:
@@ -206,7 +206,7 @@ def test_engine_choice_is_stored_and_validated(
     client: TestClient, admin: dict, site_id: str
 ) -> None:
     r = client.get(f"/v1/sites/{site_id}", headers=admin)
-    assert r.json()["engine"] == "pf"
+    assert r.json()["engine"] == "hmm"
     version = r.json()["map_version"]
     for body in (
         {"name": "x", "engine": "kalman"},
@@ -214,8 +214,8 @@ def test_engine_choice_is_stored_and_validated(
     ):
         r = client.put(f"/v1/sites/{site_id}", json=body, headers=admin)
         assert r.status_code == 422, r.text
-    r = client.put(f"/v1/sites/{site_id}", json={"name": "x", "engine": "hmm"}, headers=admin)
-    assert r.json()["engine"] == "hmm" and r.json()["map_version"] == version + 1
+    r = client.put(f"/v1/sites/{site_id}", json={"name": "x", "engine": "pf"}, headers=admin)
+    assert r.json()["engine"] == "pf" and r.json()["map_version"] == version + 1
     # leaving the engine out keeps it
     r = client.put(f"/v1/sites/{site_id}", json={"name": "y"}, headers=admin)
-    assert r.json()["engine"] == "hmm" and r.json()["map_version"] == version + 1
+    assert r.json()["engine"] == "pf" and r.json()["map_version"] == version + 1
