@@ -45,7 +45,7 @@ move.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -59,6 +59,7 @@ from app.engine.pathloss import (
     reliable,
 )
 from app.engine.plan import FloorPlan
+from app.engine.radiomap import RadioMap
 from app.engine.site import SiteModel
 
 NEVER = np.iinfo(np.int64).min // 2
@@ -114,6 +115,9 @@ class ParticleFilterParams:
         walk after a gap) are shortened to it. Sets the raster padding.
     pathloss : PathLossParams
         Path-loss constants and the expected-RSSI raster.
+    unheard_dbm : float
+        RSSI (dBm) the raster takes at a radio map's reference point whose
+        survey scans never heard the transmitter: below phones' sensitivity.
     chunk : int
         Filters per numpy call: about 32 × N particles keep the (D, M, N)
         likelihood temporaries inside the second-level cache.
@@ -136,6 +140,7 @@ class ParticleFilterParams:
     walk_turn_std_deg: float = 30.0
     max_move_m: float = 10.0
     pathloss: PathLossParams = field(default_factory=PathLossParams)
+    unheard_dbm: float = -100.0
     chunk: int = 32
 
 
@@ -232,17 +237,29 @@ class FloorModel:
     usable: np.ndarray
 
 
-def build_floor_models(site: SiteModel, params: ParticleFilterParams) -> tuple[FloorModel, ...]:
-    """Precompute every floor's free-cell list, padded walls and expected-RSSI raster."""
+def build_floor_models(
+    site: SiteModel,
+    params: ParticleFilterParams,
+    radio_maps: Sequence[RadioMap] = (),
+) -> tuple[FloorModel, ...]:
+    """Precompute every floor's free-cell list, padded walls and expected-RSSI raster.
+
+    With ``radio_maps`` (transmitter indices of ``site``), a floor's raster holds
+    the surveyed RSSI wherever its map has a reference point, and the path-loss
+    model's only where the survey never went (``overlay_radio_map``).
+    """
     tx = site.transmitters
     n_tx = len(tx)
     ok = reliable(tx.sigma, tx.B, params.quality_threshold)
+    maps = {m.floor: m for m in radio_maps}
     models = []
     for f, floor in enumerate(site.floors):
         on = np.flatnonzero(tx.floor == f) if n_tx else np.zeros(0, np.intp)
         local = np.full(n_tx, -1, dtype=np.intp)
         local[on] = np.arange(on.size)
         grid = build_rssi_grid(floor.plan.bounds, tx.xyz[on], tx.A[on], tx.B[on], params.pathloss)
+        if f in maps:
+            grid = overlay_radio_map(grid, on, maps[f], params.unheard_dbm)
         models.append(
             FloorModel(
                 plan=floor.plan,
@@ -258,6 +275,39 @@ def build_floor_models(site: SiteModel, params: ParticleFilterParams) -> tuple[F
             )
         )
     return tuple(models)
+
+
+def overlay_radio_map(
+    grid: RssiGrid, on: np.ndarray, radio_map: RadioMap, unheard_dbm: float
+) -> RssiGrid:
+    """Return the raster with the surveyed mean RSSI at the cells of the map's reference points.
+
+    A measured fingerprint beats a fitted model where there is one: walls,
+    shelves and the atrium bend the real field away from ``A - B ln r``. A
+    reference point where the survey never heard the transmitter gets
+    ``unheard_dbm`` (missing signal is evidence too); cells no survey reached
+    keep the model's value.
+
+    Parameters
+    ----------
+    grid : RssiGrid
+        The floor's path-loss raster; row k is transmitter ``on[k]``.
+    on : ndarray of intp, shape (T,)
+        Site transmitter index of each raster row.
+    radio_map : RadioMap
+        The floor's radio map, its columns in site transmitter indices.
+    """
+    cols = radio_map.columns(on) if on.size else np.zeros(0, np.int64)
+    xy = radio_map.xy
+    cells = grid.cell_index(xy[:, 0], xy[:, 1])
+    codes = grid.codes.copy()
+    for k in np.flatnonzero(cols >= 0):
+        mean = radio_map.mean[:, cols[k]].astype(float)
+        rssi = np.where(np.isfinite(mean), mean, unheard_dbm)
+        # code = round((rssi - floor) / step), clipped to a byte
+        q = np.rint((rssi - grid.floor_dbm) / grid.step_db)
+        codes[k, cells] = np.clip(q, 0, 255).astype(np.uint8)
+    return replace(grid, codes=codes)
 
 
 # --- pure steps on stacked filters -------------------------------------------------

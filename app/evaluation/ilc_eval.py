@@ -46,7 +46,7 @@ from app.datasets import data_dir
 from app.datasets.ilc import Walk, floor_level, imu_samples, site_walks
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate, to_emitters
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
-from app.engine.particle import build_floor_models
+from app.engine.particle import FloorModel, build_floor_models
 from app.engine.pdr import PdrParams, detect_steps
 from app.engine.positioning import (
     ParticleTracker,
@@ -67,9 +67,9 @@ from app.engine.wknn import Fingerprints, WknnParams, WknnTracker
 from app.evaluation.pdr_eval import calibrate_k, heading_offset, walk_pdr, wrap_deg
 from app.evaluation.site1 import SiteData, load_site, split_ids, survey, walk_batches
 
-METHODS = ("wknn", "hmm", "pf")
-"""Methods compared. The particle filter has no radio-map likelihood (its weights
-come from the path-loss rasters only), so there is no ``pf-radiomap``."""
+METHODS = ("wknn", "hmm", "pf", "pf-radiomap")
+"""Methods compared. ``pf-radiomap`` is the particle filter whose expected-RSSI
+rasters hold the radio maps' surveyed means where the survey went."""
 
 FLOOR_HEIGHT_M = 4.0
 """Storey height of the site model: ILC carries no survey of it (only z0 of outputs uses it)."""
@@ -247,9 +247,9 @@ def make_runner(name: str, learned: Learned) -> Runner:
             return replay(tracker, walk_batches(site, walk))
 
         return run_hmm
-    if name == "pf":
+    if name in ("pf", "pf-radiomap"):
         pf_params = PositioningParams(pdr=learned.pdr)
-        models = build_floor_models(learned.pf_site, pf_params.filter)
+        models = pf_models(name, learned, pf_params)
 
         def run_pf(site: SiteData, walk: Walk) -> Replay:
             tracker = ParticleTracker(
@@ -266,11 +266,36 @@ def make_runner(name: str, learned: Learned) -> Runner:
     raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
 
 
+def pf_radio_maps(learned: Learned) -> tuple[RadioMap, ...]:
+    """Return the radio maps with their columns renumbered to the particle filter's table."""
+    out = []
+    for m in learned.maps:
+        rows = learned.pf_lookup[m.tx]
+        kept = np.flatnonzero(rows >= 0)
+        out.append(
+            replace(
+                m,
+                tx=rows[kept].astype(np.int32),
+                mean=m.mean[:, kept],
+                var=m.var[:, kept],
+                detect=m.detect[:, kept],
+            )
+        )
+    return tuple(out)
+
+
+def pf_models(name: str, learned: Learned, params: PositioningParams) -> tuple[FloorModel, ...]:
+    """Return the floor models of ``pf`` (path loss only) or ``pf-radiomap``."""
+    maps = pf_radio_maps(learned) if name == "pf-radiomap" else ()
+    return build_floor_models(learned.pf_site, params.filter, maps)
+
+
 def replay_pf_batched(
     site: SiteData,
     learned: Learned,
     walks: Sequence[Walk],
     progress: Callable[[int], None] = lambda _i: None,
+    name: str = "pf",
 ) -> tuple[list[list[Estimate]], float, int]:
     """Replay all walks at once as devices of one ``PositioningEngine``, as a server worker does.
 
@@ -282,9 +307,7 @@ def replay_pf_batched(
     CPU time (s) and the number of device updates.
     """
     params = PositioningParams(pdr=learned.pdr)
-    engine = PositioningEngine(
-        learned.pf_site, params, build_floor_models(learned.pf_site, params.filter)
-    )
+    engine = PositioningEngine(learned.pf_site, params, pf_models(name, learned, params))
     streams = {}
     for walk in walks:
         engine.add(walk.walk_id, seed_from_id(walk.walk_id))
@@ -553,9 +576,9 @@ def evaluate(
     run_s: dict[str, float] = {}
     for name in methods:
         started = time.perf_counter()
-        if name == "pf" and batched:
+        if name in ("pf", "pf-radiomap") and batched:
             estimates, cpu, updates = replay_pf_batched(
-                site, learned, walks, lambda i, _n=name: progress(_n, i)
+                site, learned, walks, lambda i, _n=name: progress(_n, i), name
             )
         else:
             runner = make_runner(name, learned)

@@ -19,6 +19,7 @@ from app.engine.particle import (
     moves_free,
     mutation,
     needs_resampling,
+    overlay_radio_map,
     resample_indices,
     reweight,
     sampling_centre,
@@ -27,7 +28,9 @@ from app.engine.particle import (
     weighted_radius,
     window_displacement,
 )
+from app.engine.pathloss import PathLossParams, build_rssi_grid
 from app.engine.plan import FloorPlan, burn_segments
+from app.engine.radiomap import RadioMap
 from app.engine.site import Emitters, Floor, SiteModel
 
 P = ParticleFilterParams()
@@ -476,3 +479,33 @@ def test_floor_model_marks_transmitters_of_other_floors_unusable() -> None:
     assert models[0].usable.tolist() == [True, False, True, False]
     assert models[1].local.tolist() == [-1, 0, -1, 1]
     assert models[1].grid.codes.shape[0] == 2
+
+
+def test_radio_map_overlay_puts_surveyed_rssi_on_its_points_only() -> None:
+    """Surveyed means replace the model at reference points; unheard points get the
+    unheard level; cells no survey reached and transmitters the map lacks keep the model."""
+    params = PathLossParams()
+    tx_xyz = np.array([[2.0, 2.0, 3.0], [8.0, 2.0, 3.0]])
+    grid = build_rssi_grid((0.0, 0.0, 10.0, 4.0), tx_xyz, np.array([-40.0, -40.0]),
+                           np.array([10.0, 10.0]), params)  # fmt: skip
+    radio_map = RadioMap(
+        floor=0,
+        cell=1.0,
+        origin=np.zeros(2),
+        shape=(4, 10),
+        ij=np.array([[1, 1], [2, 6]], dtype=np.int32),  # centres (1.5, 1.5) and (6.5, 2.5)
+        tx=np.array([7], dtype=np.int32),  # site transmitter 7 only
+        mean=np.array([[-52.0], [np.nan]], dtype=np.float32),
+        var=np.array([[9.0], [np.nan]], dtype=np.float32),
+        detect=np.array([[1.0], [0.0]], dtype=np.float32),
+        weight=np.ones(2, dtype=np.float32),
+    )
+    out = overlay_radio_map(grid, np.array([7, 9]), radio_map, unheard_dbm=-100.0)
+    first = grid.cell_index(np.array([1.5]), np.array([1.5]))[0]
+    second = grid.cell_index(np.array([6.5]), np.array([2.5]))[0]
+    assert out.decode(out.codes[0, [first, second]]).tolist() == pytest.approx(
+        [-52.0, -100.0], abs=params.code_step_db / 2
+    )
+    others = np.setdiff1d(np.arange(grid.n_cells), [first, second])
+    np.testing.assert_array_equal(out.codes[0, others], grid.codes[0, others])
+    np.testing.assert_array_equal(out.codes[1], grid.codes[1])
