@@ -87,11 +87,6 @@ class CalibrationParams:
     b_plausible : tuple of float
         Range of B (dB per ln-metre) a sound fit lands in: indoor path-loss
         exponents 2–4 with 10 log10 e ≈ 4.34 dB per ln-metre each, widened.
-    a_plausible : tuple of float
-        Range of A (dBm at 1 m) a sound fit lands in: phones hear WiFi access
-        points at about -30 to -50 dBm and BLE beacons at about -55 to -75 dBm
-        from 1 m. A fit outside (on site1, hundreds pinned at the 0 dBm bound
-        with a steep B) traded A against B and position, and is not used.
     b_bounds : tuple of float
         Bounds of B in the solver.
     a_bounds : tuple of float
@@ -115,7 +110,6 @@ class CalibrationParams:
     min_spread_m: float = 2.0
     strongest: int = 5
     b_plausible: tuple[float, float] = (5.0, 40.0)
-    a_plausible: tuple[float, float] = (-90.0, -20.0)
     b_bounds: tuple[float, float] = (0.5, 80.0)
     a_bounds: tuple[float, float] = (-120.0, 0.0)
     position_margin_m: float = 15.0
@@ -148,8 +142,7 @@ class TransmitterFit:
     converged : bool
         The solver reported convergence.
     plausible : bool
-        Converged, enough readings and spread, B within ``b_plausible`` and A
-        within ``a_plausible``.
+        Converged, enough readings and spread, B within ``b_plausible``.
     position_known : bool
         x, y came from the map and were not fitted.
     """
@@ -435,11 +428,7 @@ def calibrate(
         fit = fit_path_loss(
             xy, rssi, tx_params, censored_xy=survey.scan_xy[near], position=position
         )
-        plausible = (
-            fit.converged
-            and p.b_plausible[0] <= fit.B <= p.b_plausible[1]
-            and p.a_plausible[0] <= fit.A <= p.a_plausible[1]
-        )
+        plausible = fit.converged and p.b_plausible[0] <= fit.B <= p.b_plausible[1]
         out.append(
             TransmitterFit(
                 tx=tx,
