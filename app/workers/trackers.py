@@ -44,9 +44,13 @@ class SiteEngines:
 
     @property
     def pf(self) -> PositioningEngine:
-        """Return the site's particle-filter engine, built on first use."""
+        """Return the site's particle-filter engine, built on first use.
+
+        Its expected-RSSI rasters hold the radio maps' surveyed means where the
+        site has them, the path-loss model elsewhere.
+        """
         if self._pf is None:
-            models = build_floor_models(self.site.model, self.params.filter)
+            models = build_floor_models(self.site.model, self.params.filter, self.site.radio_maps)
             self._pf = PositioningEngine(self.site.model, self.params, models)
         return self._pf
 
