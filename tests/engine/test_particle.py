@@ -122,21 +122,34 @@ def test_update_resamples_only_above_threshold(factor: float, expected: bool) ->
         np.testing.assert_array_equal(bank.w[0], w)
 
 
-def test_resample_indices_invert_the_cdf_like_a_naive_loop() -> None:
+def test_resample_indices_invert_the_cdf_at_stratified_keys_like_a_naive_loop() -> None:
     rng = np.random.default_rng(4)
     w = rng.random((3, 50)) ** 6
     w[1, 10:20] = 0.0
     w /= w.sum(axis=1, keepdims=True)
-    u = rng.random((3, 50))
+    u = rng.random(3)
     got = resample_indices(w, u)
     for r in range(3):
         cdf = np.cumsum(w[r])
         naive = []
-        for uk in np.sort(u[r]):
-            # smallest i with S_{i-1} ≤ u < S_i
-            naive.append(next(i for i in range(50) if uk < cdf[i]))
+        for j in range(50):
+            key = (u[r] + j) / 50
+            # smallest i with S_{i-1} ≤ key < S_i
+            naive.append(next(i for i in range(50) if key < cdf[i]))
         assert got[r].tolist() == naive
     assert not np.isin(got[1], np.arange(10, 20)).any()
+
+
+def test_resampling_gives_each_particle_its_expected_share_within_one_copy() -> None:
+    # stratified keys: particle i gets ⌊N w_i⌋ or ⌈N w_i⌉ copies, whatever u is
+    rng = np.random.default_rng(12)
+    w = rng.random((4, N)) ** 3
+    w /= w.sum(axis=1, keepdims=True)
+    got = resample_indices(w, rng.random(4))
+    for r in range(4):
+        copies = np.bincount(got[r], minlength=N)
+        assert copies.sum() == N
+        assert np.all(np.abs(copies - N * w[r]) < 1.0 + 1e-9)
 
 
 # --- step 2 ----------------------------------------------------------------------------
@@ -478,7 +491,7 @@ def test_floor_model_marks_transmitters_of_other_floors_unusable() -> None:
     models: tuple[FloorModel, ...] = build_floor_models(two, P)
     assert models[0].usable.tolist() == [True, False, True, False]
     assert models[1].local.tolist() == [-1, 0, -1, 1]
-    assert models[1].grid.codes.shape[0] == 2
+    assert models[1].grid.codes.shape[1] == 2
 
 
 def test_radio_map_overlay_puts_surveyed_rssi_on_its_points_only() -> None:
@@ -503,9 +516,9 @@ def test_radio_map_overlay_puts_surveyed_rssi_on_its_points_only() -> None:
     out = overlay_radio_map(grid, np.array([7, 9]), radio_map, unheard_dbm=-100.0)
     first = grid.cell_index(np.array([1.5]), np.array([1.5]))[0]
     second = grid.cell_index(np.array([6.5]), np.array([2.5]))[0]
-    assert out.decode(out.codes[0, [first, second]]).tolist() == pytest.approx(
+    assert out.decode(out.codes[[first, second], 0]).tolist() == pytest.approx(
         [-52.0, -100.0], abs=params.code_step_db / 2
     )
     others = np.setdiff1d(np.arange(grid.n_cells), [first, second])
-    np.testing.assert_array_equal(out.codes[0, others], grid.codes[0, others])
-    np.testing.assert_array_equal(out.codes[1], grid.codes[1])
+    np.testing.assert_array_equal(out.codes[others, 0], grid.codes[others, 0])
+    np.testing.assert_array_equal(out.codes[:, 1], grid.codes[:, 1])

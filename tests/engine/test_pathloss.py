@@ -85,7 +85,7 @@ def test_grid_holds_model_rssi_at_cell_centres_within_half_a_code() -> None:
     centres = np.stack(
         np.meshgrid((np.arange(nx) + 0.5) * 0.5, (np.arange(ny) + 0.5) * 0.5), axis=-1
     ).reshape(-1, 2)
-    exact = expected_rssi(ranges_3d(centres, tx_xyz, 1.2, 0.5), a, b).T
+    exact = expected_rssi(ranges_3d(centres, tx_xyz, 1.2, 0.5), a, b)
     assert np.abs(grid.decode(grid.codes) - exact).max() <= params.code_step_db / 2 + 1e-9
     assert grid.cell_index(
         np.array([0.26, 19.99, -3.0]), np.array([0.01, 9.99, 50.0])
@@ -108,8 +108,8 @@ def test_grid_likelihood_matches_direct_gaussian_sum_over_decoded_values() -> No
     sigma = rng.uniform(3, 8, (d, m))
     weight = count / (2 * sigma**2)
     weight[0, -1] = 0.0  # padding contributes nothing
-    ll = grid_log_likelihood(grid, cells, tx, rssi, weight, block=2)
-    mu = grid.decode(grid.codes[tx[:, :, None], cells[:, None, :]])
+    ll = grid_log_likelihood(grid, cells, tx, rssi, weight)
+    mu = grid.decode(grid.codes[cells[:, None, :], tx[:, :, None]])
     ref = -np.sum(weight[:, :, None] * (rssi[:, :, None] - mu) ** 2, axis=1)
     np.testing.assert_allclose(ll, ref, rtol=2e-5, atol=1e-3)
 
