@@ -895,6 +895,11 @@ def _move(
     """
     noise_t = noise.transpose(1, 0, 2)
     walking = np.array([i.step_length.size == 0 for i in inputs])
+    # rows whose moves may exceed max_move_m: random walks, and windows of many steps
+    # (a step's length error is at most √3 σ_L)
+    error = np.sqrt(3.0) * p.step_length_std_m
+    longest = np.array([i.step_length.sum() + i.step_length.size * error for i in inputs])
+    may_be_long = walking | (longest > p.max_move_m)
     dx = np.empty(alpha.shape, np.float32)
     dy = np.empty(alpha.shape, np.float32)
     direction = np.empty(alpha.shape, np.float32)
@@ -910,10 +915,12 @@ def _move(
             out = window_displacement(length, heading, alpha[rows], noise_t[:, rows], p)
         dx[rows], dy[rows], direction[rows] = out
     # moves longer than max_move_m are shortened to it
-    norm = np.hypot(dx, dy)
-    if float(norm.max(initial=0.0)) > p.max_move_m:
+    rows = np.flatnonzero(may_be_long)
+    if rows.size:
+        norm = np.hypot(dx[rows], dy[rows])
         scale = np.minimum(1.0, np.float32(p.max_move_m) / np.maximum(norm, 1e-6))
-        dx, dy = dx * scale, dy * scale
+        dx[rows] *= scale
+        dy[rows] *= scale
     nx, ny = x + dx, y + dy
     ok = moves_free(model.walls, x, y, nx, ny)
     x = np.where(ok, nx, x)
@@ -1033,10 +1040,12 @@ def _estimate(
     x: np.ndarray, y: np.ndarray, alpha: np.ndarray, w: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Return each row's weighted mean x, y, mean direction (deg) and 68% radius."""
-    mx = np.einsum("dn,dn->d", w, x)
-    my = np.einsum("dn,dn->d", w, y)
-    s = np.einsum("dn,dn->d", w, np.sin(alpha))
-    co = np.einsum("dn,dn->d", w, np.cos(alpha))
+    # float32 weights keep the sums in the particles' type (millimetres at a kilometre)
+    w32 = w.astype(np.float32)
+    mx = np.einsum("dn,dn->d", w32, x).astype(float)
+    my = np.einsum("dn,dn->d", w32, y).astype(float)
+    s = np.einsum("dn,dn->d", w32, np.sin(alpha)).astype(float)
+    co = np.einsum("dn,dn->d", w32, np.cos(alpha)).astype(float)
     # mean direction atan2(Σ w sin α, Σ w cos α), kept when the resultant R ≥ 0.5
     heading = np.where(np.hypot(s, co) >= 0.5, np.mod(np.degrees(np.arctan2(s, co)), 360.0), np.nan)
     return mx, my, heading, weighted_radius(x, y, w, mx, my, 0.68)

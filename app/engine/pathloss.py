@@ -185,9 +185,11 @@ class RssiGrid:
         """Return the flat cell index (intp) of points ``x``, ``y`` (m), clamped to the raster."""
         ny, nx = self.shape
         inv = 1.0 / self.cell
+        # Python floats keep float32 particles in float32
+        x0, y0 = float(self.origin[0]), float(self.origin[1])
         # col = ⌊(x - x₀) / c⌋, row = ⌊(y - y₀) / c⌋, both clamped
-        col = np.clip(((x - self.origin[0]) * inv).astype(np.intp), 0, nx - 1)
-        row = np.clip(((y - self.origin[1]) * inv).astype(np.intp), 0, ny - 1)
+        col = np.clip(((x - x0) * inv).astype(np.intp), 0, nx - 1)
+        row = np.clip(((y - y0) * inv).astype(np.intp), 0, ny - 1)
         # k = row · nx + col
         return row * nx + col
 
