@@ -18,7 +18,9 @@ Each estimate is compared with the waypoints interpolated at its time, only
 inside the waypoints' span. Horizontal errors count only where the estimated
 floor is right; the floor error is the share of estimates on a wrong floor;
 the heading error is against the direction of the waypoint segment being
-walked, on segments where the walker moves. CPU time is per one-second batch
+walked, on segments where the walker moves; "in acc." is the share of the
+right-floor errors within the 68% accuracy radius each estimate reported
+(68% when the radius is honest). CPU time is per one-second batch
 of one device (one device update); the particle filter replays all walks as
 devices of one engine, batched as a server worker runs them
 (``--pf-unbatched`` replays them one by one: the estimates are identical,
@@ -346,12 +348,14 @@ class WalkScore:
     Arrays cover the estimates inside the waypoints' span: ``floor_ok``
     whether the floor is right, ``error`` the horizontal error (m, NaN on a
     wrong floor), ``heading_error`` the absolute heading error (deg, NaN
-    where the estimate has no heading or the walker does not move a direction).
+    where the estimate has no heading or the walker does not move a direction),
+    ``accuracy`` the 68% radius (m) each estimate reported.
     """
 
     floor_ok: np.ndarray
     error: np.ndarray
     heading_error: np.ndarray
+    accuracy: np.ndarray
 
 
 def path_direction(waypoints: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -381,18 +385,19 @@ def score_walk(waypoints: np.ndarray, floor: int, estimates: Sequence[Estimate])
     """Score a walk's estimates against its waypoints (m, 3: t, x, y) on floor index ``floor``."""
     if not estimates:
         empty = np.zeros(0)
-        return WalkScore(np.zeros(0, bool), empty, empty)
+        return WalkScore(np.zeros(0, bool), empty, empty, empty)
     t = np.array([e.t for e in estimates], dtype=np.int64)
     xy = np.array([[e.x, e.y] for e in estimates], dtype=float)
     est_floor = np.array([e.floor for e in estimates])
     heading = np.array([e.heading for e in estimates], dtype=float)
+    accuracy = np.array([e.accuracy for e in estimates], dtype=float)
     true_xy, inside = truth_xy(waypoints, t)
     floor_ok = est_floor[inside] == floor
     err = np.hypot(*(xy[inside] - true_xy[inside]).T)
     err = np.where(floor_ok, err, np.nan)
     direction = path_direction(waypoints, t[inside])
     heading_err = np.abs(wrap_deg(heading[inside] - direction))
-    return WalkScore(floor_ok, err, heading_err)
+    return WalkScore(floor_ok, err, heading_err, accuracy[inside])
 
 
 def truth_xy(waypoints: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -413,6 +418,7 @@ class Row:
     floor_error: float
     heading_error: float
     n_heading: int
+    in_accuracy: float
     cpu_per_update_s: float
     walks: int
 
@@ -422,7 +428,10 @@ def summarise(method: str, scores: Sequence[WalkScore], cpu_s: float, updates: i
     ok = np.concatenate([s.floor_ok for s in scores]) if scores else np.zeros(0, bool)
     err = np.concatenate([s.error for s in scores]) if scores else np.zeros(0)
     hdg = np.concatenate([s.heading_error for s in scores]) if scores else np.zeros(0)
+    acc = np.concatenate([s.accuracy for s in scores]) if scores else np.zeros(0)
     right = err[ok]
+    # an honest 68% radius holds 68% of the errors on the right floor
+    within = right <= acc[ok]
     hdg = hdg[np.isfinite(hdg)]
 
     def pct(q: float) -> float:
@@ -438,6 +447,7 @@ def summarise(method: str, scores: Sequence[WalkScore], cpu_s: float, updates: i
         floor_error=float(1.0 - ok.mean()) if ok.size else float("nan"),
         heading_error=float(hdg.mean()) if hdg.size else float("nan"),
         n_heading=int(hdg.size),
+        in_accuracy=float(within.mean()) if within.size else float("nan"),
         cpu_per_update_s=cpu_s / updates if updates else float("nan"),
         walks=len(scores),
     )
@@ -466,6 +476,7 @@ def table_cells(row: Row) -> list[str]:
         num(row.p95),
         num(100.0 * row.floor_error, "{:.2f}%"),
         num(row.heading_error, "{:.1f}"),
+        num(100.0 * row.in_accuracy, "{:.0f}%"),
         format_cpu(row.cpu_per_update_s),
     ]
 
@@ -480,6 +491,7 @@ COLUMNS = (
     "p95 m",
     "floor err",
     "|hdg err| °",
+    "in acc.",
     "CPU/update",
 )
 

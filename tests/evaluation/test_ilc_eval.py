@@ -88,8 +88,13 @@ def test_score_walk_interpolates_truth_and_splits_floor_from_distance() -> None:
 def test_summary_statistics_on_a_hand_made_case() -> None:
     errors = np.array([1.0, 2.0, 3.0, 4.0, np.nan, 10.0, np.nan])
     ok = np.isfinite(errors)
-    a = WalkScore(ok[:4], errors[:4], np.array([10.0, np.nan, 30.0, 20.0]))
-    b = WalkScore(ok[4:], errors[4:], np.array([np.nan, 350.0 - 340.0, 0.0]))
+    # reported radii: errors 1, 3 and 10 fall inside theirs, 2 and 4 outside
+    a = WalkScore(
+        ok[:4], errors[:4], np.array([10.0, np.nan, 30.0, 20.0]), np.array([1.0, 1.5, 5.0, 3.0])
+    )
+    b = WalkScore(
+        ok[4:], errors[4:], np.array([np.nan, 350.0 - 340.0, 0.0]), np.array([9.0, 12.0, 1.0])
+    )
     row = summarise("m", [a, b], cpu_s=0.5, updates=1000)
     assert row.n == 7 and row.walks == 2
     assert row.mean == pytest.approx(4.0)  # (1 + 2 + 3 + 4 + 10) / 5
@@ -99,9 +104,11 @@ def test_summary_statistics_on_a_hand_made_case() -> None:
     assert row.p95 == pytest.approx(8.8)
     assert row.floor_error == pytest.approx(2 / 7)
     assert row.heading_error == pytest.approx(14.0) and row.n_heading == 5
+    assert row.in_accuracy == pytest.approx(3 / 5)  # of the five on the right floor
     assert row.cpu_per_update_s == pytest.approx(5e-4)
     cells = table_cells(row)
     assert cells[3:8] == ["4.00", "3.00", "4.00", "8.80", "28.57%"]
+    assert cells[-2] == "60%"
     assert cells[-1] == "500 µs"
 
 
