@@ -352,10 +352,8 @@ def moves_free(
     than reach(p) = clearance(p) - √2 cells cannot be on a blocked cell (p
     and a blocked cell's points lie within √2 / 2 cells of their cell
     centres). So a move is free outright when the reaches of its two ends
-    together span it; the others are traced like a sphere tracer: from the
-    last point looked up, skip every point within its reach and look up the
-    first one beyond, until the end's reach is met or a point is blocked.
-    In open space a 1.4 m move costs one or two lookups instead of eleven.
+    together span it (both ends are looked up anyway); for the others only
+    the points outside both reaches are looked up.
 
     Parameters
     ----------
