@@ -11,13 +11,15 @@ not used. Each estimate is compared with the tag's position interpolated at
 the estimate's time (the newest reading it used), so the error includes the
 filter's lag.
 
-Run ``python -m app.evaluation.ble_flat_eval`` (about a minute).
+Run ``locus eval ble-flat`` (about a minute); ``--plots DIR`` writes the
+estimates of one seed over the flat's plan, with and without walls.
 """
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -175,9 +177,11 @@ def evaluate(
         ("PF, walls, 1 m RSSI grid", fit, True, coarse),
     ]
     rows = []
+    first_seed: dict[str, list[Estimate]] = {}
     for name, f, walls, params in configs:
         site = flat_site(f, walls=walls)
         runs = [replay_pf(test, site, params, s) for s in seeds]
+        first_seed[name] = runs[0]
         test_e = np.concatenate([errors(test, r) for r in runs])
         accuracy = np.array([e.accuracy for r in runs for e in r])
         train_e = np.zeros(0)
@@ -205,8 +209,54 @@ def evaluate(
         "speed": sigma_v,
         "n_test": len(test),
         "runs": len(cal_runs),
+        "estimates": first_seed,
     }
     return rows, info
+
+
+def plot_estimates(path: Path, estimates: dict[str, list[Estimate]]) -> None:
+    """Save the test track's truth and each configuration's estimates over the walled plan."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    test = ble_flat.test_robot()
+    plan = ble_flat.floor_plan(ble_flat.read_layout(), PLAN_CELL_M, walls=True)
+    anchors = ble_flat.read_anchors()
+    xmin, ymin, xmax, ymax = plan.bounds
+    fig, ax = plt.subplots(figsize=(9, 9 * (ymax - ymin) / max(xmax - xmin, 1e-6) + 0.5))
+    ax.imshow(
+        plan.free,
+        origin="lower",
+        extent=(xmin, xmax, ymin, ymax),
+        cmap="Greys_r",
+        alpha=0.35,
+        interpolation="nearest",
+    )
+    ax.plot(test.xy[:, 0], test.xy[:, 1], "k-", lw=2, label="robot (truth)")
+    for (name, est), colour in zip(estimates.items(), ("tab:blue", "tab:orange"), strict=False):
+        xy = np.array([[e.x, e.y] for e in est])
+        mean = errors(test, est).mean()
+        ax.plot(
+            xy[:, 0],
+            xy[:, 1],
+            ".-",
+            color=colour,
+            lw=0.7,
+            ms=3,
+            alpha=0.8,
+            label=f"{name} (mean error {mean:.2f} m)",
+        )
+    ax.plot(anchors.xyz[:, 0], anchors.xyz[:, 1], "r^", ms=9, label="anchors")
+    ax.set_aspect("equal")
+    ax.set_title("BLE flat, robot test track, seed 0")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def format_report(rows: list[Row], info: dict[str, object], seeds: tuple[int, ...]) -> str:
@@ -247,10 +297,24 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=len(SEEDS), help="number of seeds (0..n-1)")
     parser.add_argument("--no-train", action="store_true", help="skip the calibration-run rows")
+    parser.add_argument(
+        "--split",
+        choices=["walk"],
+        default="walk",
+        help="by recording: fit on the calibration recording, score the robot test track",
+    )
+    parser.add_argument("--plots", type=Path, help="folder for a PNG of the test track")
     args = parser.parse_args(argv)
     seeds = tuple(range(args.seeds))
     rows, info = evaluate(seeds, with_train=not args.no_train)
     print(format_report(rows, info, seeds))
+    if args.plots:
+        args.plots.mkdir(parents=True, exist_ok=True)
+        path = args.plots / "ble_flat_test_track.png"
+        estimates = info["estimates"]
+        assert isinstance(estimates, dict)
+        plot_estimates(path, {k: estimates[k] for k in ("PF, walls", "PF, no walls")})
+        print(f"wrote {path}")
 
 
 if __name__ == "__main__":

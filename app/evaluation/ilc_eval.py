@@ -621,6 +621,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         prog="locus eval ilc", description=__doc__.splitlines()[0] if __doc__ else None
     )
     parser.add_argument("--site", type=Path, default=None, help="default: <data>/ilc/site1")
+    parser.add_argument(
+        "--split",
+        choices=["walk"],
+        default="walk",
+        help="held-out walks by a hash of the walk id (never by sample)",
+    )
     parser.add_argument("--test-fraction", type=float, default=0.2)
     parser.add_argument(
         "--validation-fraction",
