@@ -138,12 +138,18 @@ class FloorParams:
         Filter: mean RSSI at a reference point of a transmitter its survey
         never heard there.
     map_readings : int
-        Filter: the strongest readings of a window scored against the maps;
-        weak readings fluctuate most and add cost, not information.
+        Filter: at most this many readings of a window (the strongest) are
+        scored against the maps, to bound the cost. Weak readings count: a
+        transmitter a floor's survey never heard is evidence against that
+        floor even when it is faint (on ILC site1's validation walks, with
+        only the 20 strongest readings scored 2.3% of estimates fell on a
+        wrong floor, with all of them 0.16%).
     map_block_m : float
         Filter: one reference point (the most surveyed) per block of this side
         (m) enters the floor likelihood; the maps are smooth over metres and
-        the likelihood is averaged over the floor anyway.
+        the likelihood is averaged over the floor anyway. On ILC site1's
+        validation walks 1, 2, 3 and 4 m blocks choose the same floors, 5 m
+        start to miss; 4 m costs a sixteenth of scoring every point.
     """
 
     method: str = "filter"
@@ -166,7 +172,7 @@ class FloorParams:
     map_outlier_nats: float = 4.0
     unheard_dbm: float = -100.0
     map_readings: int = 100
-    map_block_m: float = 3.0
+    map_block_m: float = 4.0
 
 
 def window_sums(
@@ -485,8 +491,10 @@ def map_log_likelihood(
     np.multiply(r, r, out=r)
     # min((μ - s)², 2 c σ²): one reading costs at most c
     np.minimum(r, np.float32(2.0 * outlier_nats * sigma_db * sigma_db), out=r)
-    # ln L_j = -Σ_a min(·) / 2σ²
-    return np.add.reduceat(r, starts, axis=0).astype(float) * (-0.5 / (sigma_db * sigma_db))
+    ends = np.r_[starts[1:], r.shape[0]]
+    # ln L_j = -Σ_a min(·) / 2σ²; a sum per device (np.add.reduceat along rows is slower)
+    total = np.stack([r[lo:hi].sum(axis=0) for lo, hi in zip(starts, ends, strict=True)])
+    return total.astype(float) * (-0.5 / (sigma_db * sigma_db))
 
 
 @dataclass(frozen=True, eq=False)
