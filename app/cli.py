@@ -227,6 +227,7 @@ EVALUATIONS = {
     "locator": "app.evaluation.locator_eval",
     "locator-http": "app.evaluation.locator_http",
     "ilc": "app.evaluation.ilc_eval",
+    "ilc-floor-change": "app.evaluation.ilc_floor_change",
 }
 
 

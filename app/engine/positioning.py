@@ -4,8 +4,12 @@ Per device and positioning window (patent, Fig. 2):
 
 1.  measurements go to the preprocessor, which releases complete windows;
 2.  the window's readings are split by the floor of their transmitter;
-3.  floor selection ranks the active floors (``floors.FloorSelector``); no
-    active floor resets the last position and emits nothing;
+3.  floor selection ranks the active floors; no active floor resets the
+    last position and emits nothing. By default a forward filter over floors
+    (``floors.FloorFilter``) chooses, on evidence computed for all due
+    devices at once (``floors.FloorEvidence``: the transmitter table, and the
+    site's radio maps when it has them); the patent's E_L ranking with
+    hysteresis (``floors.FloorSelector``) remains available;
 4.  the dead reckoning's steps and any positional measurement of the window
     are handed to the particle filter of each active floor;
 5.  the first floor's filter gives x, y;
@@ -23,13 +27,13 @@ floor rarely changes to anything but the runner-up.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from app.engine.floors import FloorParams, FloorSelector
+from app.engine.floors import FloorEvidence, FloorFilter, FloorParams, FloorSelector
 from app.engine.particle import (
     FilterEstimate,
     FilterInput,
@@ -47,6 +51,7 @@ from app.engine.preprocess import (
     group_by_floor,
     mean_by_transmitter,
 )
+from app.engine.radiomap import RadioMap
 from app.engine.samples import Batch, Estimate
 from app.engine.site import SiteModel
 
@@ -162,6 +167,25 @@ def refine(
     return position, velocity
 
 
+def floor_selector(
+    site: SiteModel, params: FloorParams, state: dict[str, Any] | None = None
+) -> FloorFilter | FloorSelector:
+    """Return the floor selection ``params.method`` names, fresh or from a snapshot."""
+    levels = np.array([f.level for f in site.floors])
+    if params.method == "filter":
+        return FloorFilter(levels, params, state)
+    if params.method == "patent":
+        return FloorSelector(levels, params, state)
+    raise ValueError(f"unknown floor selection {params.method!r}; choose 'filter' or 'patent'")
+
+
+def floor_evidence(
+    site: SiteModel, params: FloorParams, radio_maps: Sequence[RadioMap] = ()
+) -> FloorEvidence:
+    """Return the floor filter's evidence for a site, with its radio maps when it has them."""
+    return FloorEvidence(site.transmitters.floor, len(site.floors), params, radio_maps)
+
+
 class DeviceState:
     """One device's positioning state outside the particle bank."""
 
@@ -170,7 +194,7 @@ class DeviceState:
     ) -> None:
         self.rng = rng
         self.pre = Preprocessor(params.preprocess)
-        self.floors = FloorSelector(np.array([f.level for f in site.floors]), params.floors)
+        self.floors = floor_selector(site, params.floors)
         self.pdr = Pdr(params.pdr)
         self.slots: dict[int, int] = {}
         self.imu_t = -(2**62)
@@ -190,6 +214,9 @@ class PositioningEngine:
     params : PositioningParams
     models : tuple of FloorModel, optional
         Prebuilt ``build_floor_models(site, params.filter)``, to share between engines.
+    evidence : FloorEvidence, optional
+        Prebuilt ``floor_evidence(site, params.floors, radio_maps)``, to share
+        between engines; by default the transmitter table's alone.
     """
 
     method = "pf"
@@ -199,10 +226,12 @@ class PositioningEngine:
         site: SiteModel,
         params: PositioningParams,
         models: tuple[FloorModel, ...] | None = None,
+        evidence: FloorEvidence | None = None,
     ) -> None:
         self.site = site
         self.params = params
         self.models = models if models is not None else build_floor_models(site, params.filter)
+        self.evidence = evidence if evidence is not None else floor_evidence(site, params.floors)
         self.bank = ParticleBank(params.filter.n_particles)
         self.devices: dict[str, DeviceState] = {}
         tx = site.transmitters
@@ -247,8 +276,7 @@ class PositioningEngine:
         dev = DeviceState(self.site, self.params, rng_from_state(state["rng"]))
         p = self.params
         dev.pre = Preprocessor(p.preprocess, state["pre"])
-        levels = np.array([f.level for f in self.site.floors])
-        dev.floors = FloorSelector(levels, p.floors, state["floors"])
+        dev.floors = floor_selector(self.site, p.floors, state["floors"])
         saved = state["pdr"]
         dev.pdr = Pdr.from_snapshot({k: saved.get(k) for k in _PDR_KEYS}, p.pdr)
         dev.slots = {int(f): self.bank.restore(s) for f, s in state.get("filters", {}).items()}
@@ -285,7 +313,11 @@ class PositioningEngine:
         depth = max([len(w) for w in windows.values()] + [0])
         for k in range(depth):
             due = {d: w[k] for d, w in windows.items() if k < len(w)}
-            plans = {d: self._plan(self.devices[d], win) for d, win in due.items()}
+            loglik = self._floor_evidence(due)
+            plans = {
+                d: self._plan(self.devices[d], win, loglik[i])
+                for i, (d, win) in enumerate(due.items())
+            }
             by_floor: dict[int, list[tuple[str, FilterInput]]] = {}
             for d, (_, inputs) in plans.items():
                 for f, inp in inputs:
@@ -308,14 +340,32 @@ class PositioningEngine:
                 results[d].append(out)
         return results
 
-    def _plan(self, dev: DeviceState, win: Window) -> tuple[int, list[tuple[int, FilterInput]]]:
+    def _floor_evidence(self, due: dict[str, Window]) -> np.ndarray:
+        """Return the floor filter's log-likelihoods (D, F) of the due windows, in ``due`` order."""
+        n_floors = len(self.site.floors)
+        if self.params.floors.method != "filter":
+            return np.zeros((len(due), n_floors))
+        wins = list(due.values())
+        sizes = [len(w.rssi) for w in wins]
+        device = np.repeat(np.arange(len(wins)), sizes)
+        tx = np.concatenate([w.rssi.tx for w in wins]) if wins else np.zeros(0, np.intp)
+        rssi = np.concatenate([w.rssi.rssi for w in wins]) if wins else np.zeros(0)
+        return self.evidence.log_likelihood(device, tx.astype(np.intp), rssi, len(wins))
+
+    def _plan(
+        self, dev: DeviceState, win: Window, loglik: np.ndarray
+    ) -> tuple[int, list[tuple[int, FilterInput]]]:
         """Floor selection for one window; return the chosen floor and the filter inputs."""
         p = self.params
         rssi = win.rssi
         tx_floor = self._tx_floor[rssi.tx]
-        ranked = dev.floors.update(
-            win.t1, tx_floor, rssi.rssi, self._tx_a[rssi.tx], win.pressure.hpa
-        )
+        if isinstance(dev.floors, FloorFilter):
+            heard = np.bincount(tx_floor, minlength=len(self.site.floors))
+            ranked = dev.floors.update(win.t1, loglik, heard, win.pressure.hpa)
+        else:
+            ranked = dev.floors.update(
+                win.t1, tx_floor, rssi.rssi, self._tx_a[rssi.tx], win.pressure.hpa
+            )
         self._release_idle(dev, win.t1)
         if ranked.size == 0:
             return -1, []
@@ -427,6 +477,8 @@ class ParticleTracker:
         Generator seed of a fresh device (ignored when restoring).
     models : tuple of FloorModel, optional
         Prebuilt floor models shared between trackers of the site.
+    evidence : FloorEvidence, optional
+        Prebuilt floor evidence shared between trackers of the site.
     """
 
     _ID = "device"
@@ -439,8 +491,9 @@ class ParticleTracker:
         *,
         seed: int = 0,
         models: tuple[FloorModel, ...] | None = None,
+        evidence: FloorEvidence | None = None,
     ) -> None:
-        self.engine = PositioningEngine(site, params, models)
+        self.engine = PositioningEngine(site, params, models, evidence)
         if state is None:
             self.engine.add(self._ID, seed)
         else:

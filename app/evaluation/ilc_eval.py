@@ -12,7 +12,12 @@ one-second batches a phone would upload, through:
 - ``hmm``: the fingerprint + inertial HMM of seed 002 over the same maps, fed by PDR;
 - ``pf``: the particle filter of seed 000 (floor selection, PDR steps, map
   constraint) through ``PositioningEngine`` with the server's default
-  parameters, on the transmitters calibrated by ``app.engine.calibration``.
+  parameters, on the transmitters calibrated by ``app.engine.calibration``,
+  as on a site without radio maps: floors are chosen on the transmitter
+  table alone;
+- ``pf-radiomap``: the same where the site has radio maps, as the server
+  runs it: the maps' surveyed RSSI in the filters' rasters and in the
+  floor evidence.
 
 Each estimate is compared with the waypoints interpolated at its time, only
 inside the waypoints' span. Horizontal errors count only where the estimated
@@ -47,6 +52,7 @@ import numpy as np
 from app.datasets import data_dir
 from app.datasets.ilc import Walk, floor_level, imu_samples, site_walks
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate, to_emitters
+from app.engine.floors import FloorEvidence
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
 from app.engine.particle import FloorModel, build_floor_models
 from app.engine.pdr import PdrParams, detect_steps
@@ -54,6 +60,7 @@ from app.engine.positioning import (
     ParticleTracker,
     PositioningEngine,
     PositioningParams,
+    floor_evidence,
     seed_from_id,
 )
 from app.engine.radiomap import (
@@ -252,10 +259,15 @@ def make_runner(name: str, learned: Learned) -> Runner:
     if name in ("pf", "pf-radiomap"):
         pf_params = PositioningParams(pdr=learned.pdr)
         models = pf_models(name, learned, pf_params)
+        evidence = pf_evidence(name, learned, pf_params)
 
         def run_pf(site: SiteData, walk: Walk) -> Replay:
             tracker = ParticleTracker(
-                learned.pf_site, pf_params, seed=seed_from_id(walk.walk_id), models=models
+                learned.pf_site,
+                pf_params,
+                seed=seed_from_id(walk.walk_id),
+                models=models,
+                evidence=evidence,
             )
             return replay(
                 tracker,
@@ -292,6 +304,12 @@ def pf_models(name: str, learned: Learned, params: PositioningParams) -> tuple[F
     return build_floor_models(learned.pf_site, params.filter, maps)
 
 
+def pf_evidence(name: str, learned: Learned, params: PositioningParams) -> FloorEvidence:
+    """Return the floor evidence of ``pf`` (transmitter table only) or ``pf-radiomap``."""
+    maps = pf_radio_maps(learned) if name == "pf-radiomap" else ()
+    return floor_evidence(learned.pf_site, params.floors, maps)
+
+
 def replay_pf_batched(
     site: SiteData,
     learned: Learned,
@@ -309,7 +327,12 @@ def replay_pf_batched(
     CPU time (s) and the number of device updates.
     """
     params = PositioningParams(pdr=learned.pdr)
-    engine = PositioningEngine(learned.pf_site, params, pf_models(name, learned, params))
+    engine = PositioningEngine(
+        learned.pf_site,
+        params,
+        pf_models(name, learned, params),
+        pf_evidence(name, learned, params),
+    )
     streams = {}
     for walk in walks:
         engine.add(walk.walk_id, seed_from_id(walk.walk_id))

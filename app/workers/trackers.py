@@ -18,7 +18,7 @@ from app.engine.centroid import CentroidParams, WeightedCentroid
 from app.engine.ekf import LocatorTracker, LocatorTrackerParams, UwbTracker, UwbTrackerParams
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
 from app.engine.particle import build_floor_models
-from app.engine.positioning import PositioningEngine, PositioningParams
+from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker
 from app.workers.sites import LoadedSite
@@ -47,11 +47,14 @@ class SiteEngines:
         """Return the site's particle-filter engine, built on first use.
 
         Its expected-RSSI rasters hold the radio maps' surveyed means where the
-        site has them, the path-loss model elsewhere.
+        site has them, the path-loss model elsewhere; its floor evidence uses
+        the maps when every floor has one.
         """
         if self._pf is None:
-            models = build_floor_models(self.site.model, self.params.filter, self.site.radio_maps)
-            self._pf = PositioningEngine(self.site.model, self.params, models)
+            model, maps = self.site.model, self.site.radio_maps
+            models = build_floor_models(model, self.params.filter, maps)
+            evidence = floor_evidence(model, self.params.floors, maps)
+            self._pf = PositioningEngine(model, self.params, models, evidence)
         return self._pf
 
     @property

@@ -153,3 +153,45 @@ def test_generator_state_round_trips_and_seeds_come_from_ids() -> None:
     twin = rng_from_state(rng_state(rng))
     assert np.array_equal(rng.random(5), twin.random(5))
     assert seed_from_id("tag-1") == seed_from_id("tag-1") != seed_from_id("tag-2")
+
+
+def run_floors(tracker: ParticleTracker, floors: list[int], start: int = 0) -> list[Estimate]:
+    """Windows ``start``, ``start + 1``, … of the walk, window k heard on ``floors[k - start]``."""
+    noise = np.random.default_rng(start)
+    out: list[Estimate] = []
+    for k, floor in enumerate(floors, start):
+        out += tracker.process(walk_batch(k, floor, noise))
+    return out
+
+
+def test_engine_follows_a_device_that_changes_floor_and_resumes_mid_change() -> None:
+    site = two_floors()
+    tracker = ParticleTracker(site, PARAMS, seed=5)
+    before = run_floors(tracker, [0] * 12)
+    assert {e.floor for e in before} == {0}
+    # the change at window 12; snapshot after its first window, resume in a twin
+    first = run_floors(tracker, [1], 12)
+    twin = ParticleTracker(site, PARAMS, decode(encode(tracker.snapshot())))
+    after = run_floors(tracker, [1] * 10, 13)
+    assert same(after, run_floors(twin, [1] * 10, 13))
+    floors = [e.floor for e in first + after]
+    # estimates of window k come out with window k + 1; the new floor within three windows
+    switch = floors.index(1)
+    assert switch <= 3 and set(floors[switch:]) == {1}
+
+
+def test_patent_floor_selection_stays_selectable_and_waits_for_its_dwell() -> None:
+    patent = replace(PARAMS, floors=replace(PARAMS.floors, method="patent"))
+    site = two_floors()
+    tracker = ParticleTracker(site, patent, seed=5)
+    floors = [e.floor for e in run_floors(tracker, [0] * 12 + [1] * 10)]
+    filtered = [e.floor for e in run_floors(ParticleTracker(site, PARAMS), [0] * 12 + [1] * 10)]
+    # estimate i is window i: E_L over 10 s of history needs floor 1 to outnumber floor 0
+    # there, then the dwell; the filter follows within three windows
+    assert floors.index(1) >= 12 + patent.floors.dwell_windows
+    assert set(floors[floors.index(1) :]) == {1}
+    assert filtered.index(1) <= 14 < floors.index(1)
+    restored = ParticleTracker(site, patent, decode(encode(tracker.snapshot())))
+    assert same(run_floors(tracker, [1] * 3, 22), run_floors(restored, [1] * 3, 22))
+    with pytest.raises(ValueError, match="floor selection"):
+        ParticleTracker(site, replace(PARAMS, floors=replace(PARAMS.floors, method="x")))
