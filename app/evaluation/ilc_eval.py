@@ -548,7 +548,7 @@ def plot_walk(
         interpolation="nearest",
     )
     ax.plot(wp[:, 1], wp[:, 2], "k.-", lw=2, ms=6, label="waypoints (truth)")
-    colours = {"wknn": "tab:orange", "hmm": "tab:green", "pf": "tab:blue"}
+    colours = {"wknn": "tab:orange", "hmm": "tab:green", "pf": "tab:blue", "pf-radiomap": "tab:red"}
     for name, estimates in results.items():
         on = [e for e in estimates if e.floor == f]
         off = len(estimates) - len(on)
