@@ -52,6 +52,7 @@ import numpy as np
 from app.datasets import data_dir
 from app.datasets.ilc import Walk, floor_level, imu_samples, site_walks
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate, to_emitters
+from app.engine.crossval import cross_validate
 from app.engine.floors import FloorEvidence
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
 from app.engine.particle import FloorModel, build_floor_models
@@ -107,6 +108,9 @@ class Learned:
 
     ``pf_lookup`` maps a site transmitter index to its row in the particle
     filter's transmitter table (-1: not calibrated, unknown to the filter).
+    ``fingerprint_error_m`` is the median error of the training scans located
+    by WKNN on maps built without their walk's fold, as a radio-map build
+    reports it; the server's particle filter adds it to its accuracy radius.
     """
 
     maps: tuple[RadioMap, ...]
@@ -115,6 +119,7 @@ class Learned:
     pf_site: SiteModel
     pf_lookup: np.ndarray
     n_train: int
+    fingerprint_error_m: float = 0.0
 
 
 def pdr_constants(walks: Iterable[Walk], base: PdrParams) -> PdrParams:
@@ -175,12 +180,17 @@ def learn(
     srv = survey(site, chosen)
     status("building radio maps")
     maps = radio_maps(site, srv, map_params or RadioMapParams())
+    status("cross-validating the radio maps")
+    held = cross_validate(
+        srv, dict(enumerate(site.plans)), map_params or RadioMapParams(), WknnParams()
+    )
     status("calibrating transmitters")
     fits = tuple(calibrate(srv, calibration or CalibrationParams()))
     status("fitting PDR constants")
     pdr_params = pdr_constants((w for w in site.walks if w.walk_id in chosen), pdr or PdrParams())
     model, lookup = pf_site_model(site, fits)
-    return Learned(maps, fits, pdr_params, model, lookup, len(chosen))
+    error = float(np.median(held.error_m)) if held is not None else 0.0
+    return Learned(maps, fits, pdr_params, model, lookup, len(chosen), error)
 
 
 # --- replay --------------------------------------------------------------------------
@@ -257,7 +267,7 @@ def make_runner(name: str, learned: Learned) -> Runner:
 
         return run_hmm
     if name in ("pf", "pf-radiomap"):
-        pf_params = PositioningParams(pdr=learned.pdr)
+        pf_params = pf_positioning_params(name, learned)
         models = pf_models(name, learned, pf_params)
         evidence = pf_evidence(name, learned, pf_params)
 
@@ -298,6 +308,16 @@ def pf_radio_maps(learned: Learned) -> tuple[RadioMap, ...]:
     return tuple(out)
 
 
+def pf_positioning_params(name: str, learned: Learned) -> PositioningParams:
+    """Return the server's parameters with the learned PDR constants.
+
+    ``pf-radiomap`` also gets the radius floor a server takes from its site's
+    radio-map build (``app.workers.trackers.site_params``).
+    """
+    floor = learned.fingerprint_error_m if name == "pf-radiomap" else 0.0
+    return PositioningParams(pdr=learned.pdr, accuracy_floor_m=floor)
+
+
 def pf_models(name: str, learned: Learned, params: PositioningParams) -> tuple[FloorModel, ...]:
     """Return the floor models of ``pf`` (path loss only) or ``pf-radiomap``."""
     maps = pf_radio_maps(learned) if name == "pf-radiomap" else ()
@@ -326,7 +346,7 @@ def replay_pf_batched(
     per device update differs. Returns each walk's estimates, the engine's
     CPU time (s) and the number of device updates.
     """
-    params = PositioningParams(pdr=learned.pdr)
+    params = pf_positioning_params(name, learned)
     engine = PositioningEngine(
         learned.pf_site,
         params,
@@ -694,7 +714,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"{len(learned.fits)} calibrated ({n_plausible} plausible, used by pf), "
         f"{sum(m.n_points for m in learned.maps)} radio-map points, "
         f"PDR K = {learned.pdr.weinberg_k:.4f}, heading offset = "
-        f"{learned.pdr.heading_offset_deg:+.2f}°"
+        f"{learned.pdr.heading_offset_deg:+.2f}°, held-out WKNN median "
+        f"{learned.fingerprint_error_m:.2f} m (pf-radiomap's radius floor)"
     )
     with Progress(
         "[progress.description]{task.description}",

@@ -19,7 +19,6 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.time import now_ms
-from app.engine.positioning import PositioningParams
 from app.engine.samples import Batch, Estimate
 from app.positions.models import Position
 from app.sites.models import Site
@@ -35,6 +34,7 @@ from app.workers.trackers import (
     kind_of,
     make_tracker,
     radio_kind,
+    site_params,
 )
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ class Shard:
             self.engines.pop(site_id, None)
             return None
         loaded = load_site(db=db, site=row, raster_cell=self.settings.raster_cell)
-        engines = SiteEngines(loaded, PositioningParams())
+        engines = SiteEngines(loaded, site_params(loaded))
         self.engines[site_id] = engines
         log.info("shard %d loaded site %s v%d", self.shard, site_id, loaded.version)
         return engines

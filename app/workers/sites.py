@@ -17,7 +17,7 @@ from app.floors.service import list_floors
 from app.geometry.floormap import Emitter, parse_floor_map
 from app.geometry.raster import floor_plan
 from app.radiomaps.codec import decode_map
-from app.radiomaps.models import CalibratedTransmitter, RadioMapFloor
+from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor
 from app.sites.models import Site
 
 SURVEYED_TX_HEIGHT_M = 3.0
@@ -50,11 +50,20 @@ class LoadedSite:
     zones: tuple[Zone, ...]
     engine: str = "hmm"
     radio_maps: tuple[RadioMap, ...] = ()
+    fingerprint_error_m: float | None = None
 
     def has_pathloss(self) -> bool:
         """Return whether any transmitter has a complete path-loss model."""
         tx = self.model.transmitters
         return bool(len(tx)) and bool(np.isfinite(tx.A + tx.B + tx.sigma).any())
+
+
+def _fingerprint_error(db: Session, site_id: str) -> float | None:
+    """Return the median held-out error (m) of the site's latest radio-map build, if any."""
+    build = db.get(RadioMapBuild, site_id)
+    accuracy = (build.summary or {}).get("accuracy") if build is not None else None
+    value = accuracy.get("p50_error_m") if accuracy else None
+    return float(value) if value is not None else None
 
 
 def _emitters(rows: list[tuple[int, Emitter]]) -> Emitters:
@@ -187,10 +196,12 @@ def load_site(
     tables = {kind: _emitters(items) for kind, items in emitters.items()}
     floor_index = {f.floor_id: i for i, f in enumerate(floors)}
     radio_maps: tuple[RadioMap, ...] = ()
+    fingerprint_error_m = None
     if with_radiomap:
         tables["transmitter"], radio_maps = _with_radiomap(
             db, site.id, tables["transmitter"], floor_index
         )
+        fingerprint_error_m = _fingerprint_error(db, site.id) if radio_maps else None
     model = SiteModel(
         site_id=site.id,
         floors=tuple(floors),
@@ -211,4 +222,5 @@ def load_site(
         zones=tuple(zones),
         engine=site.engine or "hmm",
         radio_maps=radio_maps,
+        fingerprint_error_m=fingerprint_error_m,
     )

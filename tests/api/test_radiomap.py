@@ -161,6 +161,9 @@ def test_devices_get_positions_from_the_build(
     positions = _replay(client, sid, f"{sid}-pf", walks[N_SURVEYS])
     assert positions and {p["method"] for p in positions} == {"pf"}
     assert {p["floor_id"] for p in positions} == {FLOOR}
+    # the filter's radius includes the build's median held-out error
+    held_out = built_site["summary"]["accuracy"]["p50_error_m"]
+    assert all(p["accuracy"] >= held_out for p in positions)
     # the device that started on the HMM moves to the particle filter with the site
     positions = _replay(client, sid, f"{sid}-hmm", walks[N_SURVEYS - 1], shift_ms=86_400_000)
     assert positions and {p["method"] for p in positions} == {"pf"}

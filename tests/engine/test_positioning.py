@@ -102,6 +102,18 @@ def test_estimates_follow_the_walk_on_its_floor_and_lie_on_free_cells() -> None:
     assert len(tracker.flush()) == 1
 
 
+def test_accuracy_floor_adds_in_quadrature_and_changes_nothing_else() -> None:
+    site = two_floors()
+    plain = run(ParticleTracker(site, PARAMS, seed=3), range(8))
+    floored = run(ParticleTracker(site, replace(PARAMS, accuracy_floor_m=4.0), seed=3), range(8))
+    assert len(plain) == len(floored) == 7
+    for a, b in zip(plain, floored, strict=True):
+        # same positions; accuracy = √(r_cloud² + floor²)
+        assert (a.x, a.y, a.floor) == (b.x, b.y, b.floor)
+        assert b.accuracy == pytest.approx(np.hypot(a.accuracy, 4.0))
+        assert b.accuracy >= 4.0 > a.accuracy
+
+
 def test_no_active_floor_resets_and_emits_nothing() -> None:
     tracker = ParticleTracker(two_floors(), PARAMS, seed=1)
     run(tracker, range(3))
