@@ -110,7 +110,7 @@ class Learned:
     filter's transmitter table (-1: not calibrated, unknown to the filter).
     ``fingerprint_error_m`` is the median error of the training scans located
     by WKNN on maps built without their walk's fold, as a radio-map build
-    reports it; the server's particle filter adds it to its accuracy radius.
+    reports it; the server's HMM and particle filter add it to their radius.
     """
 
     maps: tuple[RadioMap, ...]
@@ -258,7 +258,8 @@ def make_runner(name: str, learned: Learned) -> Runner:
 
         return run_wknn
     if name == "hmm":
-        hmm_params = HmmParams()
+        # the radius floor a server takes from its site's radio-map build
+        hmm_params = HmmParams(accuracy_floor_m=learned.fingerprint_error_m)
         model = EmissionModel(learned.maps, hmm_params)
 
         def run_hmm(site: SiteData, walk: Walk) -> Replay:
@@ -312,7 +313,7 @@ def pf_positioning_params(name: str, learned: Learned) -> PositioningParams:
     """Return the server's parameters with the learned PDR constants.
 
     ``pf-radiomap`` also gets the radius floor a server takes from its site's
-    radio-map build (``app.workers.trackers.site_params``).
+    radio-map build (``app.workers.trackers.SiteEngines.for_site``).
     """
     floor = learned.fingerprint_error_m if name == "pf-radiomap" else 0.0
     return PositioningParams(pdr=learned.pdr, accuracy_floor_m=floor)

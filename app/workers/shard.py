@@ -34,7 +34,6 @@ from app.workers.trackers import (
     kind_of,
     make_tracker,
     radio_kind,
-    site_params,
 )
 
 log = logging.getLogger(__name__)
@@ -80,7 +79,7 @@ class Shard:
             self.engines.pop(site_id, None)
             return None
         loaded = load_site(db=db, site=row, raster_cell=self.settings.raster_cell)
-        engines = SiteEngines(loaded, site_params(loaded))
+        engines = SiteEngines.for_site(loaded)
         self.engines[site_id] = engines
         log.info("shard %d loaded site %s v%d", self.shard, site_id, loaded.version)
         return engines
