@@ -241,6 +241,35 @@ def pressure_climb(
     return True, float(-(p[-1] - p[0]) / params.hpa_per_m)
 
 
+class PressureHistory:
+    """A device's mean barometer reading per window, kept for ``climb_window_ms``.
+
+    Both floor selectors read the climb from it; its snapshot keys (``p_t``,
+    ``p_hpa``) sit inside theirs.
+    """
+
+    def __init__(self, state: dict[str, Any] | None = None) -> None:
+        state = state or {}
+        self.t = np.asarray(state.get("p_t", np.zeros(0, np.int64)), dtype=np.int64).copy()
+        self.hpa = np.asarray(state.get("p_hpa", np.zeros(0)), dtype=float).copy()
+
+    def update(
+        self, t: int, pressure_hpa: np.ndarray | None, params: FloorParams
+    ) -> tuple[bool, float]:
+        """Add a window's readings, forget the old ones; return ``pressure_climb``'s answer."""
+        if pressure_hpa is not None and len(pressure_hpa):
+            self.t = np.append(self.t, t)
+            self.hpa = np.append(self.hpa, float(np.mean(pressure_hpa)))
+        if self.t.size:
+            recent = self.t >= t - params.climb_window_ms
+            self.t, self.hpa = self.t[recent], self.hpa[recent]
+        return pressure_climb(self.t, self.hpa, t, params)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return the kept times and pressures."""
+        return {"p_t": self.t.copy(), "p_hpa": self.hpa.copy()}
+
+
 def choose_floor(
     ranking: np.ndarray,
     scores: np.ndarray,
@@ -320,8 +349,7 @@ class FloorSelector:
         self.t = np.asarray(state.get("t", np.full(size, NEVER)), dtype=np.int64).copy()
         self.sums = np.asarray(state.get("sums", np.zeros((size, 3, n_floors))), float).copy()
         self.pos = int(state.get("pos", 0))
-        self.p_t = np.asarray(state.get("p_t", np.zeros(0, np.int64)), dtype=np.int64)
-        self.p_hpa = np.asarray(state.get("p_hpa", np.zeros(0)), dtype=float)
+        self.pressure = PressureHistory(state)
         self.current = int(state.get("current", -1))
         self.candidate = int(state.get("candidate", -1))
         self.lead = int(state.get("lead", 0))
@@ -332,8 +360,7 @@ class FloorSelector:
             "t": self.t.copy(),
             "sums": self.sums.copy(),
             "pos": self.pos,
-            "p_t": self.p_t,
-            "p_hpa": self.p_hpa,
+            **self.pressure.snapshot(),
             "current": self.current,
             "candidate": self.candidate,
             "lead": self.lead,
@@ -370,16 +397,10 @@ class FloorSelector:
         self.t[self.pos] = t
         self.sums[self.pos] = sums
         self.pos = (self.pos + 1) % self.t.size
-        if pressure_hpa is not None and len(pressure_hpa):
-            self.p_t = np.append(self.p_t, t)
-            self.p_hpa = np.append(self.p_hpa, float(np.mean(pressure_hpa)))
-        if self.p_t.size:
-            recent = self.p_t >= t - p.climb_window_ms
-            self.p_t, self.p_hpa = self.p_t[recent], self.p_hpa[recent]
+        barometer, climb = self.pressure.update(t, pressure_hpa, p)
         count, sum_rssi, sum_a = self.sums[self.t > t - p.history_ms].sum(axis=0)
         scores = floor_scores(count, sum_rssi, sum_a)
         ranking = rank_floors(scores)
-        barometer, climb = pressure_climb(self.p_t, self.p_hpa, t, p)
         self.current, self.candidate, self.lead = choose_floor(
             ranking,
             scores,
@@ -737,8 +758,7 @@ class FloorFilter:
         self.t = np.asarray(state.get("t", np.full(size, NEVER)), dtype=np.int64).copy()
         self.heard = np.asarray(state.get("heard", np.zeros((size, n))), float).copy()
         self.pos = int(state.get("pos", 0))
-        self.p_t = np.asarray(state.get("p_t", np.zeros(0, np.int64)), dtype=np.int64)
-        self.p_hpa = np.asarray(state.get("p_hpa", np.zeros(0)), dtype=float)
+        self.pressure = PressureHistory(state)
         self.current = int(state.get("current", -1))
 
     def snapshot(self) -> dict[str, Any]:
@@ -749,8 +769,7 @@ class FloorFilter:
             "t": self.t.copy(),
             "heard": self.heard.copy(),
             "pos": self.pos,
-            "p_t": self.p_t.copy(),
-            "p_hpa": self.p_hpa.copy(),
+            **self.pressure.snapshot(),
             "current": self.current,
         }
 
@@ -781,13 +800,7 @@ class FloorFilter:
             belief; empty when no floor was heard within ``history_ms``.
         """
         p = self.params
-        if pressure_hpa is not None and len(pressure_hpa):
-            self.p_t = np.append(self.p_t, t)
-            self.p_hpa = np.append(self.p_hpa, float(np.mean(pressure_hpa)))
-        if self.p_t.size:
-            recent = self.p_t >= t - p.climb_window_ms
-            self.p_t, self.p_hpa = self.p_t[recent], self.p_hpa[recent]
-        barometer, climb = pressure_climb(self.p_t, self.p_hpa, t, p)
+        barometer, climb = self.pressure.update(t, pressure_hpa, p)
         # with a barometer, floors change only in the direction of a climb
         eps = p.flat_switch_prob if barometer else p.switch_prob
         T = transition_matrix(self.levels, eps, climb, p.climb_switch_prob, p.climb_min_m)
