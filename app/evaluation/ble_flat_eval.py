@@ -30,6 +30,7 @@ from app.engine.pathloss import PathLossParams, fit_pathloss, ranges_3d
 from app.engine.positioning import ParticleTracker, PositioningParams
 from app.engine.samples import Batch, Estimate
 from app.engine.site import Emitters, Floor, SiteModel
+from app.evaluation.plots import plan_figure
 
 PLAN_CELL_M = 0.1
 """Raster cell of the flat's plan: its walls are 11 to 17 cm thick and its
@@ -216,47 +217,26 @@ def evaluate(
 
 def plot_estimates(path: Path, estimates: dict[str, list[Estimate]]) -> None:
     """Save the test track's truth and each configuration's estimates over the walled plan."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     test = ble_flat.test_robot()
     plan = ble_flat.floor_plan(ble_flat.read_layout(), PLAN_CELL_M, walls=True)
     anchors = ble_flat.read_anchors()
-    xmin, ymin, xmax, ymax = plan.bounds
-    fig, ax = plt.subplots(figsize=(9, 9 * (ymax - ymin) / max(xmax - xmin, 1e-6) + 0.5))
-    ax.imshow(
-        plan.free,
-        origin="lower",
-        extent=(xmin, xmax, ymin, ymax),
-        cmap="Greys_r",
-        alpha=0.35,
-        interpolation="nearest",
-    )
-    ax.plot(test.xy[:, 0], test.xy[:, 1], "k-", lw=2, label="robot (truth)")
-    for (name, est), colour in zip(estimates.items(), ("tab:blue", "tab:orange"), strict=False):
-        xy = np.array([[e.x, e.y] for e in est])
-        mean = errors(test, est).mean()
-        ax.plot(
-            xy[:, 0],
-            xy[:, 1],
-            ".-",
-            color=colour,
-            lw=0.7,
-            ms=3,
-            alpha=0.8,
-            label=f"{name} (mean error {mean:.2f} m)",
-        )
-    ax.plot(anchors.xyz[:, 0], anchors.xyz[:, 1], "r^", ms=9, label="anchors")
-    ax.set_aspect("equal")
-    ax.set_title("BLE flat, robot test track, seed 0")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    with plan_figure(path, plan, "BLE flat, robot test track, seed 0", width_in=9.0) as ax:
+        ax.plot(test.xy[:, 0], test.xy[:, 1], "k-", lw=2, label="robot (truth)")
+        colours = ("tab:blue", "tab:orange")
+        for (name, est), colour in zip(estimates.items(), colours, strict=False):
+            xy = np.array([[e.x, e.y] for e in est])
+            mean = errors(test, est).mean()
+            ax.plot(
+                xy[:, 0],
+                xy[:, 1],
+                ".-",
+                color=colour,
+                lw=0.7,
+                ms=3,
+                alpha=0.8,
+                label=f"{name} (mean error {mean:.2f} m)",
+            )
+        ax.plot(anchors.xyz[:, 0], anchors.xyz[:, 1], "r^", ms=9, label="anchors")
 
 
 def format_report(rows: list[Row], info: dict[str, object], seeds: tuple[int, ...]) -> str:

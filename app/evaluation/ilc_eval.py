@@ -75,6 +75,7 @@ from app.engine.samples import Batch, Estimate, RssiReadings
 from app.engine.site import Floor, SiteModel
 from app.engine.wknn import Fingerprints, WknnParams, WknnTracker
 from app.evaluation.pdr_eval import calibrate_k, heading_offset, walk_pdr, wrap_deg
+from app.evaluation.plots import plan_figure
 from app.evaluation.site1 import SiteData, load_site, split_ids, survey, walk_batches
 
 METHODS = ("wknn", "hmm", "pf", "pf-radiomap")
@@ -543,6 +544,15 @@ COLUMNS = (
 # --- plots ---------------------------------------------------------------------------
 
 
+METHOD_COLOURS = {
+    "wknn": "tab:orange",
+    "hmm": "tab:green",
+    "pf": "tab:blue",
+    "pf-radiomap": "tab:red",
+}
+"""Line colour of each method in the walk plots."""
+
+
 def plot_walk(
     path: Path,
     site: SiteData,
@@ -550,52 +560,29 @@ def plot_walk(
     results: dict[str, list[Estimate]],
 ) -> None:
     """Save estimate vs truth over the walk's floor plan as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     f = site.floor_index(walk)
-    plan = site.plans[f]
-    xmin, ymin, xmax, ymax = plan.bounds
     wp = walk.waypoints
-    fig, ax = plt.subplots(figsize=(10, 10 * (ymax - ymin) / max(xmax - xmin, 1e-6) + 0.5))
-    ax.imshow(
-        plan.free,
-        origin="lower",
-        extent=(xmin, xmax, ymin, ymax),
-        cmap="Greys_r",
-        alpha=0.35,
-        interpolation="nearest",
-    )
-    ax.plot(wp[:, 1], wp[:, 2], "k.-", lw=2, ms=6, label="waypoints (truth)")
-    colours = {"wknn": "tab:orange", "hmm": "tab:green", "pf": "tab:blue", "pf-radiomap": "tab:red"}
-    for name, estimates in results.items():
-        on = [e for e in estimates if e.floor == f]
-        off = len(estimates) - len(on)
-        if on:
-            xy = np.array([[e.x, e.y] for e in on])
-            ax.plot(
-                xy[:, 0],
-                xy[:, 1],
-                ".-",
-                color=colours.get(name),
-                lw=0.8,
-                ms=3,
-                alpha=0.8,
-                label=f"{name} ({off} of {len(estimates)} on a wrong floor)",
-            )
-    pad = 15.0
-    ax.set_xlim(wp[:, 1].min() - pad, wp[:, 1].max() + pad)
-    ax.set_ylim(wp[:, 2].min() - pad, wp[:, 2].max() + pad)
-    ax.set_aspect("equal")
-    ax.set_title(f"site1 {walk.floor} walk {walk.walk_id}")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    title = f"site1 {walk.floor} walk {walk.walk_id}"
+    with plan_figure(path, site.plans[f], title, width_in=10.0) as ax:
+        ax.plot(wp[:, 1], wp[:, 2], "k.-", lw=2, ms=6, label="waypoints (truth)")
+        for name, estimates in results.items():
+            on = [e for e in estimates if e.floor == f]
+            off = len(estimates) - len(on)
+            if on:
+                xy = np.array([[e.x, e.y] for e in on])
+                ax.plot(
+                    xy[:, 0],
+                    xy[:, 1],
+                    ".-",
+                    color=METHOD_COLOURS.get(name),
+                    lw=0.8,
+                    ms=3,
+                    alpha=0.8,
+                    label=f"{name} ({off} of {len(estimates)} on a wrong floor)",
+                )
+        pad = 15.0
+        ax.set_xlim(wp[:, 1].min() - pad, wp[:, 1].max() + pad)
+        ax.set_ylim(wp[:, 2].min() - pad, wp[:, 2].max() + pad)
 
 
 # --- the evaluation ------------------------------------------------------------------
