@@ -642,15 +642,8 @@ def evaluate(
     return Evaluation(rows, kept, run_s=run_s)
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    """Learn on the training walks of site1, replay the held-out walks and print the table."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-    from rich.table import Table
-
-    parser = argparse.ArgumentParser(
-        prog="locus eval ilc", description=__doc__.splitlines()[0] if __doc__ else None
-    )
+def add_split_arguments(parser: argparse.ArgumentParser, validation_use: str) -> None:
+    """Add the site and split options shared by the site1 evaluations."""
     parser.add_argument("--site", type=Path, default=None, help="default: <data>/ilc/site1")
     parser.add_argument(
         "--split",
@@ -663,8 +656,35 @@ def main(argv: Sequence[str] | None = None) -> None:
         "--validation-fraction",
         type=float,
         default=0.0,
-        help="carve this share out of training and evaluate on it instead of the test walks",
+        help=f"carve this share out of training and {validation_use}",
     )
+
+
+def split_and_learn(
+    site_dir: Path, args: argparse.Namespace, status: Callable[[str], None] = lambda _: None
+) -> tuple[SiteData, Learned, list[str], list[str], list[str]]:
+    """Split site1's walk ids as ``args`` say, read the site and learn on the training walks.
+
+    Returns the site, what was learned and the training, validation and test ids.
+    """
+    ids = [p.name.split(".")[0] for _, p in site_walks(site_dir)]
+    train, validation, test = split_ids(
+        [_IdOnly(i) for i in ids], args.test_fraction, args.validation_fraction
+    )
+    site = load_site(site_dir, train_ids=train)
+    return site, learn(site, train, status=status), train, validation, test
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Learn on the training walks of site1, replay the held-out walks and print the table."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+    from rich.table import Table
+
+    parser = argparse.ArgumentParser(
+        prog="locus eval ilc", description=__doc__.splitlines()[0] if __doc__ else None
+    )
+    add_split_arguments(parser, "evaluate on it instead of the test walks")
     parser.add_argument("--limit", type=int, help="at most this many evaluated walks (id order)")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--plots", type=Path, help="folder for PNGs of a few walks")
@@ -680,13 +700,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     site_dir = args.site or data_dir() / "ilc" / "site1"
     t0 = time.perf_counter()
     with console.status("reading site1") as status:
-        ids = [p.name.split(".")[0] for _, p in site_walks(site_dir)]
-        train, validation, test = split_ids(
-            [_IdOnly(i) for i in ids], args.test_fraction, args.validation_fraction
+        site, learned, train, validation, test = split_and_learn(
+            site_dir, args, status=lambda s: status.update(s)
         )
         held_out = validation if args.validation_fraction > 0 else test
-        site = load_site(site_dir, train_ids=train)
-        learned = learn(site, train, status=lambda s: status.update(s))
     learn_s = time.perf_counter() - t0
     chosen = set(held_out)
     walks = [w for w in sorted(site.walks, key=lambda w: w.walk_id) if w.walk_id in chosen]

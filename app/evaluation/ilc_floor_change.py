@@ -24,17 +24,23 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
 from app.datasets import data_dir
-from app.datasets.ilc import Walk, site_walks
-from app.engine.positioning import PositioningEngine, PositioningParams, seed_from_id
+from app.datasets.ilc import Walk
+from app.engine.positioning import PositioningEngine, seed_from_id
 from app.engine.samples import Batch, Estimate
-from app.evaluation.ilc_eval import Learned, learn, pf_evidence, pf_models, remap
-from app.evaluation.site1 import SiteData, load_site, split_ids, walk_batches
+from app.evaluation.ilc_eval import (
+    Learned,
+    add_split_arguments,
+    pf_evidence,
+    pf_models,
+    pf_positioning_params,
+    remap,
+    split_and_learn,
+)
+from app.evaluation.site1 import SiteData, walk_batches
 
 WINDOW_MS = 1000
 """Batch length (ms) of the replay, the engine's positioning window."""
@@ -98,7 +104,7 @@ def replay_joined(
     learned: Learned, joined: Sequence[Joined], name: str
 ) -> dict[str, list[Estimate]]:
     """Replay the joined walks as devices of one engine; return each device's estimates."""
-    params = PositioningParams(pdr=learned.pdr)
+    params = pf_positioning_params(name, learned)
     engine = PositioningEngine(
         learned.pf_site,
         params,
@@ -183,27 +189,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         prog="locus eval ilc-floor-change",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
-    parser.add_argument("--site", type=Path, default=None, help="default: <data>/ilc/site1")
-    parser.add_argument("--test-fraction", type=float, default=0.2)
-    parser.add_argument(
-        "--validation-fraction",
-        type=float,
-        default=0.0,
-        help="carve this share out of training and join its walks instead of the test walks",
-    )
+    add_split_arguments(parser, "join its walks instead of the test walks")
     parser.add_argument("--limit", type=int, help="at most this many pairs")
     parser.add_argument(
         "--methods", nargs="+", default=["pf", "pf-radiomap"], choices=["pf", "pf-radiomap"]
     )
     args = parser.parse_args(argv)
     site_dir = args.site or data_dir() / "ilc" / "site1"
-    ids = [p.name.split(".")[0] for _, p in site_walks(site_dir)]
-    train, validation, test = split_ids(
-        [SimpleNamespace(walk_id=i) for i in ids], args.test_fraction, args.validation_fraction
-    )
+    site, learned, _, validation, test = split_and_learn(site_dir, args)
     held_out = set(validation if args.validation_fraction > 0 else test)
-    site = load_site(site_dir, train_ids=train)
-    learned = learn(site, train)
     walks = [w for w in site.walks if w.walk_id in held_out and w.waypoints.shape[0] >= 2]
     pairs = pair_walks(walks)[: args.limit]
     joined = [join(site, a, b) for a, b in pairs]
