@@ -14,7 +14,6 @@ one byte, and the likelihood becomes a gather plus a few multiply-adds.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -293,15 +292,15 @@ def grid_log_likelihood(
     # key = row · n_cells + cell: equal keys are one row's particles on one cell
     key = (cells + (np.arange(d) * n_cells)[:, None]).ravel()
     order = np.arange(key.size, dtype=np.int32)
-    stamp = _stamp_buffer(d * n_cells)
-    # the last particle written on a cell represents it
+    # the last particle written on a cell represents it; only written entries are read
+    stamp = np.empty(d * n_cells, np.int32)
     stamp[key] = order
     rep = stamp[key]
     reps = np.flatnonzero(rep == order)
     row = reps // n
     # (R, M) code index of (representative's cell, transmitter m)
     itype = np.int32 if grid.codes.size < 2**31 else np.intp
-    cell = (key[reps] - row * n_cells).astype(itype)
+    cell = cells.ravel()[reps].astype(itype)
     index = tx.astype(itype)[row]
     index += (cell * itype(n_tx))[:, None]
     codes = grid.codes.reshape(-1).take(index)
@@ -319,20 +318,3 @@ def grid_log_likelihood(
     value = np.empty(key.size, np.float32)
     value[reps] = ll
     return value[rep].reshape(d, n)
-
-
-_scratch = threading.local()
-
-
-def _stamp_buffer(size: int) -> np.ndarray:
-    """Return this thread's int32 scratch of at least ``size`` entries.
-
-    Reused between calls: a fresh multi-megabyte array would page-fault on
-    every page the particles touch, which costs more than the likelihood.
-    Entries are always written before they are read, so it is never cleared.
-    """
-    buf = getattr(_scratch, "stamp", None)
-    if buf is None or buf.size < size:
-        buf = np.empty(size, np.int32)
-        _scratch.stamp = buf
-    return buf
