@@ -47,6 +47,76 @@ class ApiError(Exception):
         self.headers = headers
 
 
+class DomainError(Exception):
+    """A failure named by the domain, not by HTTP; the handlers below map each kind to a status.
+
+    Services and workers raise these; only ``install_error_handlers`` knows status codes.
+    """
+
+    status = 500
+    code = "error"
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        details: list[Any] | None = None,
+        retry_after_s: float | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.message = message
+        self.details = details or []
+        self.retry_after_s = retry_after_s
+
+
+class NotFound(DomainError):
+    """The named resource does not exist (or is not visible to the caller)."""
+
+    status, code = 404, "not_found"
+
+
+class Forbidden(DomainError):
+    """The caller's key may not do this."""
+
+    status, code = 403, "forbidden"
+
+
+class Conflict(DomainError):
+    """The request contradicts the current state."""
+
+    status, code = 409, "conflict"
+
+
+class TooLarge(DomainError):
+    """The request exceeds a configured size limit."""
+
+    status, code = 413, "payload_too_large"
+
+
+class Invalid(DomainError):
+    """The request is well-formed but its content is not acceptable."""
+
+    status, code = 422, "invalid"
+
+
+class Overloaded(DomainError):
+    """The work cannot be taken now; the client should retry after ``retry_after_s``."""
+
+    status, code = 429, "too_many_requests"
+
+
+class Unavailable(DomainError):
+    """A dependency (workers, database, broker) cannot serve the request now."""
+
+    status, code = 503, "unavailable"
+
+
+class ProcessingFailed(DomainError):
+    """The workers failed while processing an accepted batch."""
+
+    status, code = 500, "processing_failed"
+
+
 def error_body(code: str, message: str, details: list[Any] | None = None) -> dict[str, Any]:
     """Return the JSON error object of API.md."""
     return {"error": {"code": code, "message": message, "details": details or []}}
@@ -67,6 +137,15 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _api_error(_: Request, exc: ApiError) -> JSONResponse:
         return JSONResponse(
             error_body(exc.code, exc.message, exc.details), exc.status, headers=exc.headers
+        )
+
+    @app.exception_handler(DomainError)
+    async def _domain_error(_: Request, exc: DomainError) -> JSONResponse:
+        headers = None
+        if exc.retry_after_s is not None:
+            headers = {"Retry-After": str(max(1, round(exc.retry_after_s)))}
+        return JSONResponse(
+            error_body(exc.code, exc.message, exc.details), exc.status, headers=headers
         )
 
     @app.exception_handler(RequestValidationError)
