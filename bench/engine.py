@@ -32,13 +32,11 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from app.engine.particle import (  # noqa: E402
-    FilterInput,
-    ParticleBank,
-    ParticleFilterParams,
-    build_floor_models,
-    update_filters,
-)
+from app.engine.particle.bank import ParticleBank  # noqa: E402
+from app.engine.particle.floor_model import build_floor_models  # noqa: E402
+from app.engine.particle.inputs import FilterInput  # noqa: E402
+from app.engine.particle.params import ParticleFilterParams  # noqa: E402
+from app.engine.particle.update import update_filters  # noqa: E402
 from app.engine.pathloss import expected_rssi, ranges_3d  # noqa: E402
 from app.engine.plan import FloorPlan, burn_segments  # noqa: E402
 from app.engine.positioning import PositioningEngine, PositioningParams  # noqa: E402

@@ -34,15 +34,12 @@ from typing import Any
 import numpy as np
 
 from app.engine.floors import FloorEvidence, FloorFilter, FloorParams, FloorSelector
-from app.engine.particle import (
-    FilterEstimate,
-    FilterInput,
-    FloorModel,
-    ParticleBank,
-    ParticleFilterParams,
-    build_floor_models,
-    update_filters,
-)
+from app.engine.particle.bank import ParticleBank
+from app.engine.particle.estimate import FilterEstimate
+from app.engine.particle.floor_model import FloorModel, build_floor_models
+from app.engine.particle.inputs import FilterInput
+from app.engine.particle.params import ParticleFilterParams
+from app.engine.particle.update import update_filters
 from app.engine.pdr import Pdr, PdrParams
 from app.engine.preprocess import (
     Preprocessor,

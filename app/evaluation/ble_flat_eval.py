@@ -25,7 +25,7 @@ import numpy as np
 
 from app.datasets import ble_flat
 from app.engine.centroid import CentroidParams, WeightedCentroid
-from app.engine.particle import ParticleFilterParams
+from app.engine.particle.params import ParticleFilterParams
 from app.engine.pathloss import PathLossParams, fit_pathloss, ranges_3d
 from app.engine.positioning import ParticleTracker, PositioningParams
 from app.engine.samples import Batch, Estimate

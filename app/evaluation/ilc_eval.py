@@ -55,7 +55,7 @@ from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate,
 from app.engine.crossval import cross_validate
 from app.engine.floors import FloorEvidence
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
-from app.engine.particle import FloorModel, build_floor_models
+from app.engine.particle.floor_model import FloorModel, build_floor_models
 from app.engine.pdr import PdrParams, detect_steps
 from app.engine.positioning import (
     ParticleTracker,

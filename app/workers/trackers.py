@@ -17,7 +17,7 @@ from typing import Any
 from app.engine.centroid import CentroidParams, WeightedCentroid
 from app.engine.ekf import LocatorTracker, LocatorTrackerParams, UwbTracker, UwbTrackerParams
 from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
-from app.engine.particle import build_floor_models
+from app.engine.particle.floor_model import build_floor_models
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker

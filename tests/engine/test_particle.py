@@ -8,26 +8,16 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from app.engine.particle import (
-    FilterInput,
-    FloorModel,
-    ParticleBank,
-    ParticleFilter,
-    ParticleFilterParams,
-    build_floor_models,
-    centre_sampling,
-    moves_free,
-    mutation,
-    needs_resampling,
-    overlay_radio_map,
-    resample_indices,
-    reweight,
-    sampling_centre,
-    update_filters,
-    walk_displacement,
-    weighted_radius,
-    window_displacement,
-)
+from app.engine.particle.bank import ParticleBank
+from app.engine.particle.estimate import FilterEstimate, weighted_radius
+from app.engine.particle.floor_model import FloorModel, build_floor_models, overlay_radio_map
+from app.engine.particle.inputs import FilterInput
+from app.engine.particle.motion import walk_displacement, window_displacement
+from app.engine.particle.mutation import centre_sampling, mutation, sampling_centre
+from app.engine.particle.params import ParticleFilterParams
+from app.engine.particle.update import update_filters
+from app.engine.particle.walls import moves_free
+from app.engine.particle.weights import needs_resampling, resample_indices, reweight
 from app.engine.pathloss import PathLossParams, build_rssi_grid
 from app.engine.plan import FloorPlan, burn_segments
 from app.engine.radiomap import RadioMap
@@ -419,16 +409,31 @@ def _walk_window(k: int, noise: np.random.Generator) -> tuple[int, np.ndarray]:
     return 1000 * (k + 1), -40.0 - 20.0 * np.log(np.hypot(d, 1.3)) + noise.normal(0, 4, 4)
 
 
+def _update_one(
+    bank: ParticleBank, slot: int, t: int, rssi: np.ndarray, rng: np.random.Generator
+) -> FilterEstimate:
+    """Update one filter of ``bank`` with a window of the four transmitters and one step."""
+    inp = FilterInput(slot=slot, t=t, tx=np.arange(4), rssi=rssi, count=np.ones(4), rng=rng, **STEP)
+    return update_filters(bank, MODEL, [inp], P)[0]
+
+
+def _particles(bank: ParticleBank, slot: int) -> tuple[np.ndarray, ...]:
+    """Return x, y, α and w of one filter."""
+    return bank.x[slot], bank.y[slot], bank.alpha[slot], bank.w[slot]
+
+
 def test_same_seed_same_input_gives_identical_output_and_state() -> None:
     def run(seed: int) -> tuple[list[tuple[float, float]], np.ndarray]:
-        pf = ParticleFilter(MODEL, P, np.random.default_rng(seed))
+        bank = ParticleBank(N, 1)
+        slot = bank.allocate()
+        rng = np.random.default_rng(seed)
         noise = np.random.default_rng(0)
         out = []
         for k in range(10):
             t, rssi = _walk_window(k, noise)
-            est = pf.update(t, np.arange(4), rssi, **STEP)
+            est = _update_one(bank, slot, t, rssi, rng)
             out.append((est.x, est.y))
-        return out, pf.particles[0].copy()
+        return out, bank.x[slot].copy()
 
     a, b, c = run(1), run(1), run(2)
     assert a[0] == b[0] and np.array_equal(a[1], b[1])
@@ -440,18 +445,21 @@ def test_same_seed_same_input_gives_identical_output_and_state() -> None:
 def test_snapshot_restores_exactly() -> None:
     noise = np.random.default_rng(0)
     rng = np.random.default_rng(5)
-    pf = ParticleFilter(MODEL, P, rng)
+    bank = ParticleBank(N, 1)
+    slot = bank.allocate()
     for k in range(4):
         t, rssi = _walk_window(k, noise)
-        pf.update(t, np.arange(4), rssi, **STEP)
-    twin = ParticleFilter(MODEL, P, np.random.Generator(np.random.PCG64()), pf.snapshot())
-    twin.rng.bit_generator.state = rng.bit_generator.state
+        _update_one(bank, slot, t, rssi, rng)
+    twin = ParticleBank(N, 1)
+    twin_slot = twin.restore(bank.export(slot))
+    twin_rng = np.random.Generator(np.random.PCG64())
+    twin_rng.bit_generator.state = rng.bit_generator.state
     for k in range(4, 7):
         t, rssi = _walk_window(k, noise)
-        assert pf.update(t, np.arange(4), rssi, **STEP) == twin.update(
-            t, np.arange(4), rssi, **STEP
+        assert _update_one(bank, slot, t, rssi, rng) == _update_one(
+            twin, twin_slot, t, rssi, twin_rng
         )
-    for a, b in zip(pf.particles, twin.particles, strict=True):
+    for a, b in zip(_particles(bank, slot), _particles(twin, twin_slot), strict=True):
         np.testing.assert_array_equal(a, b)
 
 

@@ -1,0 +1,191 @@
+"""Step 2: particles move by the window's steps or a random walk, then towards fixes.
+
+A window's steps (one or two at walking cadence, a nearly straight metre or
+so) are summed into one move per particle and checked against the plan
+once. Motion noise is uniform with the configured standard deviation:
+numpy's Gaussian draws cost about four uniform ones, and the sum over
+windows is Gaussian anyway.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.engine.particle.floor_model import FloorModel
+from app.engine.particle.inputs import FilterInput, steps_table
+from app.engine.particle.params import ParticleFilterParams
+from app.engine.particle.walls import moves_free
+
+
+def window_displacement(
+    length: np.ndarray,
+    heading: np.ndarray,
+    alpha: np.ndarray,
+    noise: np.ndarray,
+    params: ParticleFilterParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2: each particle's move over one window's steps, and its new direction.
+
+    Each particle draws one length error ε_L and one heading error ε_θ per
+    window, shared by the window's steps:
+    Δ = Σ_j (L_j + ε_L) (sin(θ_j + ε_θ), cos(θ_j + ε_θ)), the new α = θ_last + ε_θ.
+    Rows whose steps lack a heading (no heading source) walk along α instead:
+    Δ = (Σ L_j + k ε_L) (sin(α + ε_θ), cos(α + ε_θ)).
+
+    Parameters
+    ----------
+    length : ndarray, shape (D, K)
+        Step lengths (m), 0 for padding.
+    heading : ndarray, shape (D, K)
+        Step headings (rad clockwise from +y), NaN unknown; padding repeats
+        the last real step's heading.
+    alpha : ndarray of float32, shape (D, N)
+        Current particle directions (rad).
+    noise : ndarray of float32, shape (2, D, N)
+        Uniforms in [0, 1) for the length and heading errors.
+
+    Returns
+    -------
+    dx, dy, direction : ndarray of float32, shape (D, N)
+    """
+    root3 = np.float32(np.sqrt(3.0))
+    # uniform on [-√3 σ, √3 σ) has standard deviation σ
+    e_len = (2.0 * noise[0] - 1.0) * (root3 * np.float32(params.step_length_std_m))
+    e_dir = (2.0 * noise[1] - 1.0) * (root3 * np.float32(np.radians(params.heading_std_deg)))
+    real = length > 0
+    known = ~np.isnan(heading).any(axis=1)
+    dx = np.empty(alpha.shape, np.float32)
+    dy = np.empty(alpha.shape, np.float32)
+    direction = np.empty(alpha.shape, np.float32)
+    if known.any():
+        rows = np.flatnonzero(known)
+        h = heading[rows]
+        sin_h, cos_h = np.sin(h) * real[rows], np.cos(h) * real[rows]
+        # V = Σ L_j u_j, U = Σ u_j, u_j = (sin θ_j, cos θ_j)
+        vx = np.sum(length[rows] * sin_h, axis=1, keepdims=True).astype(np.float32)
+        vy = np.sum(length[rows] * cos_h, axis=1, keepdims=True).astype(np.float32)
+        ux = np.sum(sin_h, axis=1, keepdims=True).astype(np.float32)
+        uy = np.sum(cos_h, axis=1, keepdims=True).astype(np.float32)
+        el, ed = e_len[rows], e_dir[rows]
+        s, c = np.sin(ed), np.cos(ed)
+        # (a, b) = V + ε_L U, rotated clockwise by ε_θ
+        a = vx + el * ux
+        b = vy + el * uy
+        dx[rows] = a * c + b * s
+        dy[rows] = b * c - a * s
+        direction[rows] = h[:, -1:].astype(np.float32) + ed
+    if not known.all():
+        rows = np.flatnonzero(~known)
+        k = real[rows].sum(axis=1, keepdims=True).astype(np.float32)
+        total = length[rows].sum(axis=1, keepdims=True).astype(np.float32)
+        free_dir = alpha[rows] + e_dir[rows]
+        # along α: ℓ = Σ L_j + k ε_L
+        ell = np.maximum(total + k * e_len[rows], 0.0)
+        dx[rows] = ell * np.sin(free_dir)
+        dy[rows] = ell * np.cos(free_dir)
+        direction[rows] = free_dir
+    return dx, dy, direction
+
+
+def walk_displacement(
+    dt_s: np.ndarray, alpha: np.ndarray, noise: np.ndarray, params: ParticleFilterParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 without an inertial stream: a correlated random walk with a speed prior.
+
+    The speed prior is Rayleigh with scale σ_v, the speed of a velocity whose
+    components are independent N(0, σ_v²); it is drawn by inverting its CDF.
+
+    Parameters
+    ----------
+    dt_s : ndarray, shape (D, 1)
+        Time since the previous update (s).
+    alpha : ndarray of float32, shape (D, N)
+        Current particle directions (rad).
+    noise : ndarray of float32, shape (2, D, N)
+        Uniforms in [0, 1) for the speed and the turn.
+
+    Returns
+    -------
+    dx, dy, direction : ndarray of float32, shape (D, N)
+    """
+    dt = np.asarray(dt_s, dtype=np.float32)
+    root3 = np.float32(np.sqrt(3.0))
+    turn_sd = np.float32(np.radians(params.walk_turn_std_deg))
+    # turn ~ uniform with σ = σ_turn √Δt
+    direction = alpha + (2.0 * noise[1] - 1.0) * (root3 * turn_sd * np.sqrt(dt))
+    # |v| = σ_v √(-2 ln(1 - u)), Δ = |v| Δt (sin α, cos α); u < 1 even after rounding to float32
+    u = np.minimum(noise[0], np.float32(1.0 - 2.0**-24))
+    speed = np.float32(params.walk_speed_mps) * np.sqrt(-2.0 * np.log1p(-u))
+    step = speed * dt
+    return step * np.sin(direction), step * np.cos(direction), direction
+
+
+def move_particles(
+    model: FloorModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    alpha: np.ndarray,
+    inputs: list[FilterInput],
+    noise: np.ndarray,
+    p: ParticleFilterParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for moving filters: the window's move of every particle, checked against the plan.
+
+    A blocked particle stays put and takes the random direction (2u - 1) π
+    from the uniform that drew its heading error: that draw only shaped the
+    move it did not make, so it is still an independent uniform.
+    """
+    noise_t = noise.transpose(1, 0, 2)
+    walking = np.array([i.step_length.size == 0 for i in inputs])
+    # rows whose moves may exceed max_move_m: random walks, and windows of many steps
+    # (a step's length error is at most √3 σ_L)
+    error = np.sqrt(3.0) * p.step_length_std_m
+    longest = np.array([i.step_length.sum() + i.step_length.size * error for i in inputs])
+    may_be_long = walking | (longest > p.max_move_m)
+    dx = np.empty(alpha.shape, np.float32)
+    dy = np.empty(alpha.shape, np.float32)
+    direction = np.empty(alpha.shape, np.float32)
+    for rows, walk in ((np.flatnonzero(~walking), False), (np.flatnonzero(walking), True)):
+        if rows.size == 0:
+            continue
+        chosen = [inputs[r] for r in rows]
+        if walk:
+            dt = np.array([[i.walk_s] for i in chosen])
+            out = walk_displacement(dt, alpha[rows], noise_t[:, rows], p)
+        else:
+            length, heading = steps_table(chosen)
+            out = window_displacement(length, heading, alpha[rows], noise_t[:, rows], p)
+        dx[rows], dy[rows], direction[rows] = out
+    # moves longer than max_move_m are shortened to it
+    rows = np.flatnonzero(may_be_long)
+    if rows.size:
+        norm = np.hypot(dx[rows], dy[rows])
+        scale = np.minimum(1.0, np.float32(p.max_move_m) / np.maximum(norm, 1e-6))
+        dx[rows] *= scale
+        dy[rows] *= scale
+    nx, ny = x + dx, y + dy
+    ok = moves_free(model.walls, x, y, nx, ny)
+    x = np.where(ok, nx, x)
+    y = np.where(ok, ny, y)
+    # α = θ for a made move, (2u - 1) π for a blocked one
+    alpha = np.where(ok, direction, (2.0 * noise_t[1] - 1.0) * np.float32(np.pi))
+    return x, y, alpha
+
+
+def pull_towards_fixes(
+    model: FloorModel, x: np.ndarray, y: np.ndarray, fix: np.ndarray, r_pf: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2: shift particles towards positional measurements (R, 3: x, y, radius).
+
+    The shift is the fraction ρ / (1 + ρ) of the way, ρ = r_indoor / r_fix:
+    proportional to the patent's ratio of radii while small and never past
+    the measurement. The measurement is first projected onto the free area;
+    a particle the shift would put on a blocked cell stays where it is.
+    """
+    fxy = model.plan.project(fix[:, :2])
+    # k = r_pf / (r_pf + r_fix); a filter without a radius yet jumps to the fix
+    k = np.where(np.isfinite(r_pf), r_pf / (r_pf + fix[:, 2]), 1.0)[:, None]
+    px = x + k * (fxy[:, :1] - x)
+    py = y + k * (fxy[:, 1:] - y)
+    ok = model.plan.is_free(np.stack([px, py], axis=-1))
+    return np.where(ok, px, x), np.where(ok, py, y)

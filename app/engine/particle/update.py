@@ -1,0 +1,197 @@
+"""Steps 1–11 for many filters of one floor at once, one numpy call per operation.
+
+Randomness: every filter input carries its device's generator, and each
+device draws its own blocks in a fixed order (its floors in index order,
+then per phase), so a device's particles never depend on which other
+devices share its batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.engine.particle.bank import ParticleBank
+from app.engine.particle.estimate import FilterEstimate, cloud_estimate
+from app.engine.particle.floor_model import FloorModel, scatter
+from app.engine.particle.inputs import FilterInput, readings_table
+from app.engine.particle.motion import move_particles, pull_towards_fixes
+from app.engine.particle.mutation import mutate_and_centre
+from app.engine.particle.params import ParticleFilterParams
+from app.engine.particle.weights import (
+    alive_count,
+    log_likelihood,
+    needs_resampling,
+    resample_rows,
+    reweight,
+)
+
+
+def update_filters(
+    bank: ParticleBank,
+    model: FloorModel,
+    inputs: Sequence[FilterInput],
+    params: ParticleFilterParams,
+) -> list[FilterEstimate]:
+    """Run steps 1–11 for filters of one floor, ``params.chunk`` filters per numpy call."""
+    out: list[FilterEstimate] = []
+    for start in range(0, len(inputs), params.chunk):
+        out.extend(_update_chunk(bank, model, inputs[start : start + params.chunk], params))
+    return out
+
+
+@dataclass
+class _Draws:
+    """One chunk's phase-A random numbers, drawn per device in input order.
+
+    Each array holds only the rows that need it: ``scatter`` the rescattered
+    filters, ``motion`` the moving ones, ``mutate`` and ``centre`` those
+    running steps 7–9, in the order of the chunk.
+    """
+
+    scatter: np.ndarray
+    motion: np.ndarray
+    mutate: np.ndarray
+    centre: np.ndarray
+
+
+def _draw(
+    inputs: Sequence[FilterInput],
+    rescatter: np.ndarray,
+    moving: np.ndarray,
+    mutate: np.ndarray,
+    p: ParticleFilterParams,
+) -> _Draws:
+    """Draw what each filter needs this update from its own device's generator."""
+    n = p.n_particles
+    draws = _Draws(
+        scatter=np.empty((int(rescatter.sum()), n, 4)),
+        motion=np.empty((int(moving.sum()), 2, n), np.float32),
+        mutate=np.empty((int(mutate.sum()), 5 * p.n_mutate + 2 * p.n_centre)),
+        centre=np.empty((int(mutate.sum()), 2, p.n_centre)),
+    )
+    i_s = i_m = i_u = 0
+    for r, inp in enumerate(inputs):
+        rng = inp.rng
+        if rescatter[r]:
+            rng.random(out=draws.scatter[i_s])
+            i_s += 1
+        if moving[r]:
+            rng.random(out=draws.motion[i_m], dtype=np.float32)
+            i_m += 1
+        if mutate[r]:
+            rng.random(out=draws.mutate[i_u])
+            rng.standard_normal(out=draws.centre[i_u])
+            i_u += 1
+    return draws
+
+
+def _select(mask: np.ndarray) -> slice | np.ndarray:
+    """Return an index for the rows where ``mask`` holds: a slice (views) when it holds for all."""
+    return slice(None) if mask.all() else np.flatnonzero(mask)
+
+
+def _update_chunk(
+    bank: ParticleBank,
+    model: FloorModel,
+    inputs: Sequence[FilterInput],
+    p: ParticleFilterParams,
+) -> list[FilterEstimate]:
+    """Run steps 1–11 for at most ``p.chunk`` filters of one floor."""
+    n = p.n_particles
+    slots = np.array([i.slot for i in inputs], dtype=np.intp)
+    t = np.array([i.t for i in inputs], dtype=np.int64)
+    # consecutive slots are worked on in place, others copied out and back
+    contiguous = bool(np.all(np.diff(slots) == 1))
+    where = slice(int(slots[0]), int(slots[-1]) + 1) if contiguous else slots
+    x, y, alpha, w = bank.x[where], bank.y[where], bank.alpha[where], bank.w[where]
+
+    tx, rssi, count, valid = readings_table(model, inputs)
+    radio = np.array([i.tx.size > 0 for i in inputs])
+
+    # Decisions that depend only on the state before the move.
+    stale = ~bank.sampled[slots] | (t - bank.last_radio[slots] > p.rescatter_after_ms)
+    starving = ~stale & (alive_count(w, p.dead_weight) < p.min_alive)
+    weigh = (t - bank.last_weights[slots] >= p.update_interval_ms) & valid.any(axis=1)
+    mutate = weigh & (valid.sum(axis=1) >= p.min_transmitters)
+    moving = np.array([i.step_length.size > 0 or i.walk_s > 0 for i in inputs])
+    draws = _draw(inputs, stale | starving, moving, mutate, p)
+    scatter_rows = np.cumsum(stale | starving) - 1
+
+    # Step 1.
+    rows = np.flatnonzero(stale)
+    if rows.size:
+        x[rows], y[rows], alpha[rows] = scatter(model, draws.scatter[scatter_rows[rows]])
+        w[rows] = 1.0 / n
+
+    # Step 2: motion, then the pull of positional measurements.
+    if moving.any():
+        rows = _select(moving)
+        x[rows], y[rows], alpha[rows] = move_particles(
+            model,
+            x[rows],
+            y[rows],
+            alpha[rows],
+            [i for i, m in zip(inputs, moving, strict=True) if m],
+            draws.motion,
+            p,
+        )
+    pulled = np.array([i.fix is not None for i in inputs])
+    if pulled.any():
+        rows = np.flatnonzero(pulled)
+        fix = np.array([inputs[r].fix for r in rows], dtype=float)
+        x[rows], y[rows] = pull_towards_fixes(
+            model, x[rows], y[rows], fix, bank.radius[slots[rows]]
+        )
+
+    # Step 3.
+    rows = np.flatnonzero(starving)
+    if rows.size:
+        x[rows], y[rows], alpha[rows] = scatter(model, draws.scatter[scatter_rows[rows]])
+        w[rows] = 1.0 / n
+
+    # Steps 5–9.
+    if mutate.any():
+        rows = _select(mutate)
+        xr, yr, ar, wr = x[rows], y[rows], alpha[rows], w[rows]
+        mutate_and_centre(
+            model,
+            xr,
+            yr,
+            ar,
+            wr,
+            tx[rows],
+            rssi[rows],
+            valid[rows],
+            draws.mutate,
+            draws.centre,
+            p,
+        )
+        x[rows], y[rows], alpha[rows], w[rows] = xr, yr, ar, wr
+
+    # Step 10.
+    if weigh.any():
+        rows = _select(weigh)
+        ll = log_likelihood(model, x[rows], y[rows], tx[rows], rssi[rows], count[rows], valid[rows])
+        w[rows] = reweight(w[rows], ll)
+        bank.last_weights[slots[rows]] = t[rows]
+    bank.last_radio[slots[radio]] = t[radio]
+
+    # Step 11: the device draws its uniform only when it resamples.
+    resample = needs_resampling(w, p.resample_n)
+    if resample.any():
+        picked = np.flatnonzero(resample)
+        u = np.array([inputs[r].rng.random() for r in picked])
+        resample_rows(x, y, alpha, w, picked, u)
+
+    mx, my, heading, radius = cloud_estimate(x, y, alpha, w)
+    if not contiguous:
+        bank.x[slots], bank.y[slots], bank.alpha[slots], bank.w[slots] = x, y, alpha, w
+    bank.sampled[slots] = True
+    bank.radius[slots] = radius
+    return [
+        FilterEstimate(float(mx[r]), float(my[r]), float(heading[r]), float(radius[r]), bool(s))
+        for r, s in enumerate(resample)
+    ]
