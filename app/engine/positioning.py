@@ -6,10 +6,10 @@ Per device and positioning window (patent, Fig. 2):
 2.  the window's readings are split by the floor of their transmitter;
 3.  floor selection ranks the active floors; no active floor resets the
     last position and emits nothing. By default a forward filter over floors
-    (``floors.FloorFilter``) chooses, on evidence computed for all due
-    devices at once (``floors.FloorEvidence``: the transmitter table, and the
-    site's radio maps when it has them); the patent's E_L ranking with
-    hysteresis (``floors.FloorSelector``) remains available;
+    (``floors.forward.FloorFilter``) chooses, on evidence computed for all due
+    devices at once (``floors.evidence.FloorEvidence``: the transmitter table,
+    and the site's radio maps when it has them); the patent's E_L ranking with
+    hysteresis (``floors.patent.PatentFloorSelector``) remains available;
 4.  the dead reckoning's steps and any positional measurement of the window
     are handed to the particle filter of each active floor;
 5.  the first floor's filter gives x, y;
@@ -33,7 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from app.engine.floors import FloorEvidence, FloorFilter, FloorParams, FloorSelector
+from app.engine.floors.evidence import FloorEvidence
+from app.engine.floors.params import FloorParams
+from app.engine.floors.selection import FloorSelector, floor_selector_class
+from app.engine.floors.window import FloorWindow
 from app.engine.particle.bank import ParticleBank
 from app.engine.particle.estimate import FilterEstimate
 from app.engine.particle.floor_model import FloorModel, build_floor_models
@@ -174,14 +177,10 @@ def refine(
 
 def floor_selector(
     site: SiteModel, params: FloorParams, state: dict[str, Any] | None = None
-) -> FloorFilter | FloorSelector:
-    """Return the floor selection ``params.method`` names, fresh or from a snapshot."""
+) -> FloorSelector:
+    """Return the floor selector ``params.method`` names, fresh or from a snapshot."""
     levels = np.array([f.level for f in site.floors])
-    if params.method == "filter":
-        return FloorFilter(levels, params, state)
-    if params.method == "patent":
-        return FloorSelector(levels, params, state)
-    raise ValueError(f"unknown floor selection {params.method!r}; choose 'filter' or 'patent'")
+    return floor_selector_class(params)(levels, params, state)
 
 
 def floor_evidence(
@@ -348,7 +347,7 @@ class PositioningEngine:
     def _floor_evidence(self, due: dict[str, Window]) -> np.ndarray:
         """Return the floor filter's log-likelihoods (D, F) of the due windows, in ``due`` order."""
         n_floors = len(self.site.floors)
-        if self.params.floors.method != "filter":
+        if not floor_selector_class(self.params.floors).uses_evidence:
             return np.zeros((len(due), n_floors))
         wins = list(due.values())
         sizes = [len(w.rssi) for w in wins]
@@ -364,13 +363,10 @@ class PositioningEngine:
         p = self.params
         rssi = win.rssi
         tx_floor = self._tx_floor[rssi.tx]
-        if isinstance(dev.floors, FloorFilter):
-            heard = np.bincount(tx_floor, minlength=len(self.site.floors))
-            ranked = dev.floors.update(win.t1, loglik, heard, win.pressure.hpa)
-        else:
-            ranked = dev.floors.update(
-                win.t1, tx_floor, rssi.rssi, self._tx_a[rssi.tx], win.pressure.hpa
-            )
+        window = FloorWindow(
+            win.t1, tx_floor, rssi.rssi, self._tx_a[rssi.tx], loglik, win.pressure.hpa
+        )
+        ranked = dev.floors.update(window)
         self._release_idle(dev, win.t1)
         if ranked.size == 0:
             return -1, []

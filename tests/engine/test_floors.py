@@ -5,22 +5,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.engine.floors import (
+from app.engine.floors.evidence import (
     FloorEvidence,
-    FloorFilter,
-    FloorParams,
-    FloorSelector,
-    choose_floor,
-    floor_scores,
-    forward_step,
     map_log_likelihood,
-    pressure_climb,
-    rank_floors,
     strongest_means,
     thin_points,
-    transition_matrix,
+)
+from app.engine.floors.forward import FloorFilter, forward_step, transition_matrix
+from app.engine.floors.params import FloorParams
+from app.engine.floors.patent import (
+    PatentFloorSelector,
+    choose_floor,
+    floor_scores,
+    rank_floors,
     window_sums,
 )
+from app.engine.floors.pressure import pressure_climb
+from app.engine.floors.window import FloorWindow
 from app.engine.radiomap import RadioMap
 from app.workers.snapshots import decode, encode
 
@@ -84,11 +85,11 @@ def _reference_switch(leader: list[int], dwell: int, params: FloorParams) -> lis
 
 def test_switch_waits_for_the_dwell_and_matches_a_second_implementation() -> None:
     leader = [0] * 12 + [1] * 15
-    selector = FloorSelector(np.array([0, 1]), PARAMS)
+    selector = PatentFloorSelector(np.array([0, 1]), PARAMS)
     chosen = []
     for k, lead in enumerate(leader):
         floor, rssi, a = _window(lead, 1 - lead)
-        chosen.append(int(selector.update(1000 * k, floor, rssi, a)[0]))
+        chosen.append(int(selector.update(FloorWindow(1000 * k, floor, rssi, a))[0]))
     assert chosen == _reference_switch(leader, PARAMS.dwell_windows, PARAMS)
     first = chosen.index(1)
     assert first > 12 + PARAMS.dwell_windows - 1
@@ -96,37 +97,38 @@ def test_switch_waits_for_the_dwell_and_matches_a_second_implementation() -> Non
 
 
 def test_alternating_leader_does_not_flicker() -> None:
-    selector = FloorSelector(np.array([0, 1]), PARAMS)
+    selector = PatentFloorSelector(np.array([0, 1]), PARAMS)
     chosen = []
     for k in range(30):
         lead = k % 2
         floor, rssi, a = _window(lead, 1 - lead)
-        chosen.append(int(selector.update(1000 * k, floor, rssi, a)[0]))
+        chosen.append(int(selector.update(FloorWindow(1000 * k, floor, rssi, a))[0]))
     assert set(chosen) == {0}
 
 
 def test_climb_in_the_challengers_direction_switches_at_once() -> None:
     # floor 1 is one storey up; pressure falls 0.6 hPa (5 m) in the first window of the climb
     def run(hpa_step: float) -> int:
-        selector = FloorSelector(np.array([0, 1]), PARAMS)
+        selector = PatentFloorSelector(np.array([0, 1]), PARAMS)
         hpa = 1000.0
         for k in range(40):
             lead = 0 if k < 12 else 1
             if k == 12:
                 hpa += hpa_step
             floor, rssi, a = _window(lead, 1 - lead)
-            if selector.update(1000 * k, floor, rssi, a, np.array([hpa]))[0] == 1:
+            window = FloorWindow(1000 * k, floor, rssi, a, pressure_hpa=np.array([hpa]))
+            if selector.update(window)[0] == 1:
                 return k
         return -1
 
     flat = run(0.0)
     up = run(-0.6)
     down = run(+0.6)
-    no_baro = FloorSelector(np.array([0, 1]), PARAMS)
+    no_baro = PatentFloorSelector(np.array([0, 1]), PARAMS)
     plain = -1
     for k in range(40):
         floor, rssi, a = _window(0 if k < 12 else 1, 1 if k < 12 else 0)
-        if no_baro.update(1000 * k, floor, rssi, a)[0] == 1:
+        if no_baro.update(FloorWindow(1000 * k, floor, rssi, a))[0] == 1:
             plain = k
             break
     # the climb lets the first leading window win; a flat barometer needs the longer dwell
@@ -148,8 +150,8 @@ def test_pressure_climb_converts_hpa_to_metres_over_the_window() -> None:
 
 
 def test_no_readings_means_no_floor_and_choose_floor_resets() -> None:
-    selector = FloorSelector(np.array([0, 1]), PARAMS)
-    out = selector.update(0, np.zeros(0, np.intp), np.zeros(0), np.zeros(0))
+    selector = PatentFloorSelector(np.array([0, 1]), PARAMS)
+    out = selector.update(FloorWindow(0, np.zeros(0, np.intp), np.zeros(0), np.zeros(0)))
     assert out.size == 0 and selector.current == -1
     assert choose_floor(
         np.zeros(0, np.intp), np.full(2, np.nan), np.array([0, 1]), 1, -1, 0, False, 0.0, PARAMS
@@ -157,16 +159,17 @@ def test_no_readings_means_no_floor_and_choose_floor_resets() -> None:
 
 
 def test_readings_of_transmitters_without_model_are_ignored_and_snapshot_resumes() -> None:
-    selector = FloorSelector(np.array([0, 1]), PARAMS)
+    selector = PatentFloorSelector(np.array([0, 1]), PARAMS)
     floor, rssi, a = _window(0, 1)
     a = a.copy()
     a[:4] = np.nan
-    assert selector.update(0, floor, rssi, a).tolist() == [1]
-    twin = FloorSelector(np.array([0, 1]), PARAMS, selector.snapshot())
+    assert selector.update(FloorWindow(0, floor, rssi, a)).tolist() == [1]
+    twin = PatentFloorSelector(np.array([0, 1]), PARAMS, selector.snapshot())
     for k in range(1, 8):
         f, r, aa = _window(0, 1)
         assert (
-            selector.update(1000 * k, f, r, aa).tolist() == twin.update(1000 * k, f, r, aa).tolist()
+            selector.update(FloorWindow(1000 * k, f, r, aa)).tolist()
+            == twin.update(FloorWindow(1000 * k, f, r, aa)).tolist()
         )
 
 
@@ -317,6 +320,15 @@ def _evidence_for(floor: int, lead_db: float) -> tuple[np.ndarray, np.ndarray]:
     return evidence.log_likelihood(np.zeros(6, np.intp), tx, rssi, 1)[0], np.array([3, 3])
 
 
+def _filter_window(
+    t: int, loglik: np.ndarray, heard: np.ndarray, pressure: np.ndarray | None = None
+) -> FloorWindow:
+    """A window with the evidence ``loglik`` and ``heard[f]`` readings of floor f's transmitters."""
+    floor = np.repeat(np.arange(len(heard)), np.asarray(heard, int))
+    rssi, a = np.full(floor.size, -60.0), np.full(floor.size, -45.0)
+    return FloorWindow(t, floor, rssi, a, loglik, pressure)
+
+
 def _run_filter(
     leaders: list[int], lead_db: float, hpa: list[float] | None = None, params: FloorParams = PARAMS
 ) -> list[int]:
@@ -326,7 +338,7 @@ def _run_filter(
     for k, lead in enumerate(leaders):
         ll, heard = _evidence_for(lead, lead_db)
         pressure = None if hpa is None else np.array([hpa[k]])
-        chosen.append(int(f.update(1000 * k, ll, heard, pressure)[0]))
+        chosen.append(int(f.update(_filter_window(1000 * k, ll, heard, pressure))[0]))
     return chosen
 
 
@@ -368,32 +380,32 @@ def test_filter_without_readings_in_the_history_has_no_floor_but_keeps_its_belie
     f = FloorFilter(np.array([0, 1]), PARAMS)
     for k in range(5):
         ll, heard = _evidence_for(1, 20.0)
-        assert f.update(1000 * k, ll, heard).tolist() == [1, 0]
+        assert f.update(_filter_window(1000 * k, ll, heard)).tolist() == [1, 0]
     # 15 s later, a window without readings: nothing heard within 10 s
-    assert f.update(20_000, np.zeros(2), np.zeros(2)).size == 0
+    assert f.update(_filter_window(20_000, np.zeros(2), np.zeros(2))).size == 0
     assert f.current == -1 and f.belief[1] > 0.9
     ll, heard = _evidence_for(1, 0.0)
-    assert f.update(21_000, ll, heard)[0] == 1
+    assert f.update(_filter_window(21_000, ll, heard))[0] == 1
 
 
 def test_filter_ranks_the_chosen_floor_then_active_floors_by_belief() -> None:
     f = FloorFilter(np.array([0, 1, 2]), PARAMS)
     ll = np.array([0.0, 5.0, 2.0])
     # floor 2 not heard: only floors 0 and 1 are active
-    assert f.update(0, ll, np.array([2, 1, 0])).tolist() == [1, 0]
-    assert f.update(1000, ll, np.array([2, 1, 1])).tolist() == [1, 2, 0]
+    assert f.update(_filter_window(0, ll, np.array([2, 1, 0]))).tolist() == [1, 0]
+    assert f.update(_filter_window(1000, ll, np.array([2, 1, 1]))).tolist() == [1, 2, 0]
 
 
 def test_filter_snapshot_round_trips_through_the_codec_and_resumes_exactly() -> None:
     f = FloorFilter(np.array([0, 1]), PARAMS)
     for k in range(12):
         ll, heard = _evidence_for(k // 6, 10.0)
-        f.update(1000 * k, ll, heard, np.array([1000.0 - 0.01 * k]))
+        f.update(_filter_window(1000 * k, ll, heard, np.array([1000.0 - 0.01 * k])))
     twin = FloorFilter(np.array([0, 1]), PARAMS, decode(encode({"floors": f.snapshot()}))["floors"])
     for k in range(12, 30):
         ll, heard = _evidence_for(1 if k < 20 else 0, 10.0)
         pressure = np.array([1000.0 - 0.01 * k])
-        assert f.update(1000 * k, ll, heard, pressure).tolist() == (
-            twin.update(1000 * k, ll, heard, pressure).tolist()
+        assert f.update(_filter_window(1000 * k, ll, heard, pressure)).tolist() == (
+            twin.update(_filter_window(1000 * k, ll, heard, pressure)).tolist()
         )
         assert f.belief.tolist() == twin.belief.tolist()
