@@ -413,7 +413,16 @@ def _update_one(
     bank: ParticleBank, slot: int, t: int, rssi: np.ndarray, rng: np.random.Generator
 ) -> FilterEstimate:
     """Update one filter of ``bank`` with a window of the four transmitters and one step."""
-    inp = FilterInput(slot=slot, t=t, tx=np.arange(4), rssi=rssi, count=np.ones(4), rng=rng, **STEP)
+    inp = FilterInput(
+        slot=slot,
+        t=t,
+        tx=np.arange(4),
+        rssi=rssi,
+        count=np.ones(4),
+        rng=rng,
+        step_length=STEP["step_length"],
+        step_heading=STEP["step_heading"],
+    )
     return update_filters(bank, MODEL, [inp], P)[0]
 
 

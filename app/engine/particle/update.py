@@ -128,12 +128,12 @@ def _update_chunk(
 
     # Step 2: motion, then the pull of positional measurements.
     if moving.any():
-        rows = _select(moving)
-        x[rows], y[rows], alpha[rows] = move_particles(
+        sel = _select(moving)
+        x[sel], y[sel], alpha[sel] = move_particles(
             model,
-            x[rows],
-            y[rows],
-            alpha[rows],
+            x[sel],
+            y[sel],
+            alpha[sel],
             [i for i, m in zip(inputs, moving, strict=True) if m],
             draws.motion,
             p,
@@ -141,7 +141,7 @@ def _update_chunk(
     pulled = np.array([i.fix is not None for i in inputs])
     if pulled.any():
         rows = np.flatnonzero(pulled)
-        fix = np.array([inputs[r].fix for r in rows], dtype=float)
+        fix = np.array([inputs[r].fix for r in rows.tolist()], dtype=np.float64)
         x[rows], y[rows] = pull_towards_fixes(
             model, x[rows], y[rows], fix, bank.radius[slots[rows]]
         )
@@ -154,36 +154,36 @@ def _update_chunk(
 
     # Steps 5–9.
     if mutate.any():
-        rows = _select(mutate)
-        xr, yr, ar, wr = x[rows], y[rows], alpha[rows], w[rows]
+        sel = _select(mutate)
+        xr, yr, ar, wr = x[sel], y[sel], alpha[sel], w[sel]
         mutate_and_centre(
             model,
             xr,
             yr,
             ar,
             wr,
-            tx[rows],
-            rssi[rows],
-            valid[rows],
+            tx[sel],
+            rssi[sel],
+            valid[sel],
             draws.mutate,
             draws.centre,
             p,
         )
-        x[rows], y[rows], alpha[rows], w[rows] = xr, yr, ar, wr
+        x[sel], y[sel], alpha[sel], w[sel] = xr, yr, ar, wr
 
     # Step 10.
     if weigh.any():
-        rows = _select(weigh)
-        ll = log_likelihood(model, x[rows], y[rows], tx[rows], rssi[rows], count[rows], valid[rows])
-        w[rows] = reweight(w[rows], ll)
-        bank.last_weights[slots[rows]] = t[rows]
+        sel = _select(weigh)
+        ll = log_likelihood(model, x[sel], y[sel], tx[sel], rssi[sel], count[sel], valid[sel])
+        w[sel] = reweight(w[sel], ll)
+        bank.last_weights[slots[sel]] = t[sel]
     bank.last_radio[slots[radio]] = t[radio]
 
     # Step 11: the device draws its uniform only when it resamples.
     resample = needs_resampling(w, p.resample_n)
     if resample.any():
         picked = np.flatnonzero(resample)
-        u = np.array([inputs[r].rng.random() for r in picked])
+        u = np.array([inputs[r].rng.random() for r in picked.tolist()])
         resample_rows(x, y, alpha, w, picked, u)
 
     mx, my, heading, radius = cloud_estimate(x, y, alpha, w)
