@@ -1,4 +1,4 @@
-"""Constants of floor selection, both selectors' and the choice between them."""
+"""Constants of floor selection: which selector runs, and each selector's own."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ class FloorParams:
     Attributes
     ----------
     method : str
-        ``"filter"``: the forward filter over floors; ``"patent"``: the
-        patent's E_L ranking with hysteresis.
+        The floor selector (``selection.SELECTORS``): ``"filter"``, the
+        forward filter over floors; ``"patent"``, the patent's E_L ranking
+        with hysteresis.
     history_ms : int
         N of the patent (its value is not given): readings of the last
         ``history_ms`` count. 10 s spans three to five WiFi scans of a phone.

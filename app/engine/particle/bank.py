@@ -6,7 +6,8 @@ from typing import Any
 
 import numpy as np
 
-from app.engine.particle.params import NEVER
+NEVER = np.iinfo(np.int64).min // 2
+"""Time (ms) standing for "never"; halved so that differences cannot overflow."""
 
 
 class ParticleBank:

@@ -14,28 +14,6 @@ from app.engine.particle.params import ParticleFilterParams
 from app.engine.pathloss import range_from_rssi
 
 
-def sampling_centre(
-    rssi: np.ndarray, A: np.ndarray, B: np.ndarray, valid: np.ndarray
-) -> np.ndarray:
-    """Step 8: index of the heard transmitter nearest by the inverse path loss.
-
-    Parameters
-    ----------
-    rssi, A, B : ndarray, shape (D, M)
-        Mean reading (dBm) and path-loss parameters of each heard transmitter.
-    valid : ndarray of bool, shape (D, M)
-        False for padding and filtered transmitters.
-
-    Returns
-    -------
-    ndarray of intp, shape (D,)
-        Column of the nearest transmitter (0 for rows without any).
-    """
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        r = range_from_rssi(rssi, A, B)
-    return np.argmin(np.where(valid, r, np.inf), axis=-1)
-
-
 def mutation(
     model: FloorModel, u: np.ndarray, n: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -58,6 +36,28 @@ def mutation(
     # (R, 4 N_m) → (R, N_m, 4); the row count is explicit so that N_m = 0 reshapes too
     x, y, alpha = scatter(model, u[:, m:].reshape(u.shape[0], 4, m).transpose(0, 2, 1))
     return pick, x, y, alpha
+
+
+def sampling_centre(
+    rssi: np.ndarray, A: np.ndarray, B: np.ndarray, valid: np.ndarray
+) -> np.ndarray:
+    """Step 8: index of the heard transmitter nearest by the inverse path loss.
+
+    Parameters
+    ----------
+    rssi, A, B : ndarray, shape (D, M)
+        Mean reading (dBm) and path-loss parameters of each heard transmitter.
+    valid : ndarray of bool, shape (D, M)
+        False for padding and filtered transmitters.
+
+    Returns
+    -------
+    ndarray of intp, shape (D,)
+        Column of the nearest transmitter (0 for rows without any).
+    """
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        r = range_from_rssi(rssi, A, B)
+    return np.argmin(np.where(valid, r, np.inf), axis=-1)
 
 
 def centre_sampling(

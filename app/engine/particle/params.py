@@ -4,12 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from app.engine.pathloss import PathLossParams
-
-NEVER = np.iinfo(np.int64).min // 2
-"""Time (ms) standing for "never"; halved so that differences cannot overflow."""
 
 
 @dataclass(frozen=True)
