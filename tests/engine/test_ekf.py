@@ -8,21 +8,20 @@ import pytest
 from app.engine.ekf import (
     POSITION_H,
     EkfParams,
-    LocatorTracker,
-    LocatorTrackerParams,
     PositionEkf,
-    UwbTracker,
-    UwbTrackerParams,
     ekf_update,
-    group_epochs,
     heading_deg,
     imu_yaw_rate,
     process_jacobian,
     propagate,
+)
+from app.engine.lateration.solver import solve
+from app.engine.locator_tracker import (
+    LocatorTracker,
+    LocatorTrackerParams,
     strongest_centroid,
     window_means,
 )
-from app.engine.lateration import solve
 from app.engine.plan import FloorPlan, burn_segments
 from app.engine.samples import Batch, Fixes, ImuSamples, Ranges, RssiReadings
 from app.engine.site import Emitters, Floor, SiteModel
@@ -33,6 +32,7 @@ from app.engine.uwb_bias import (
     solve_biases,
     survey_biases,
 )
+from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams, group_epochs
 from app.workers.snapshots import decode, encode
 
 T0 = 1_700_000_000_000
