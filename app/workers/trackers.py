@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.engine.centroid import CentroidParams, WeightedCentroid
-from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
+from app.engine.hmm.tracker import HmmTracker
 from app.engine.locator_tracker import LocatorTracker, LocatorTrackerParams
 from app.engine.particle import build_floor_models
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
