@@ -1,9 +1,9 @@
-"""A tag heard by fixed locators: windowed RSSI least squares, then the EKF on motion.
+"""A tag heard by fixed locators: windowed RSSI means solved by least squares, then the EKF.
 
 Every ``step_ms`` the readings of the last ``window_ms`` are averaged per
-locator and solved as a 2-D least-squares fix at the tag's known height
-(seed 003's solver, ``lateration``); the fixes, with the path-loss model's
-location-bound error added, go through the seed-001 filter (``ekf``).
+locator and solved as a 2-D fix at the tag's known height (``lateration``);
+the fixes, with the path-loss model's location-bound error added, go through
+the seed-001 filter (``ekf``).
 """
 
 from __future__ import annotations

@@ -1,10 +1,4 @@
-"""A UWB tag's tracker: two-way ranges (or given fixes) and gyro in, EKF positions out.
-
-Ranges are grouped into epochs, corrected by the tag's per-anchor bias
-estimates and solved as least-squares fixes (seed 003's solver, ``lateration``);
-each fix goes through the seed-001 filter (``ekf``), and the residuals of the
-fixes the filter accepts refine the biases (``uwb_bias``).
-"""
+"""A UWB tag's tracker: range epochs solved by least squares (``lateration``), then the EKF."""
 
 from __future__ import annotations
 
