@@ -16,10 +16,11 @@ import argparse
 
 import numpy as np
 
-from app.engine.ekf import EkfParams, UwbTracker, UwbTrackerParams
+from app.engine.ekf import EkfParams
 from app.engine.plan import FloorPlan
 from app.engine.samples import Batch, Fixes, ImuSamples
 from app.engine.site import Floor, SiteModel
+from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
 
 T0 = 1_700_000_000_000
 FIX_STD_M = 0.3

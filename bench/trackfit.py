@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 from app.datasets import data_dir  # noqa: E402
 from app.datasets.ilc import floor_map_geojson  # noqa: E402
 from app.engine.plan import FloorPlan  # noqa: E402
-from app.engine.trackfit import TrackFitParams, fit_track  # noqa: E402
+from app.engine.trackfit.fit import TrackFitParams, fit_track  # noqa: E402
 from app.geometry.floormap import FloorMap, parse_floor_map  # noqa: E402
 from app.geometry.raster import floor_plan  # noqa: E402
 

@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from app.engine.lateration import Model, covariance_checks, path_loss_B, whitened_jacobian
+from app.engine.lateration.accuracy import Model, covariance_checks, path_loss_B, whitened_jacobian
 from app.engine.site import Emitters, SiteModel
 
 Tech = Literal["ble", "uwb"]

@@ -101,6 +101,7 @@ class Steps:
     swing: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
+        """Return the number of steps."""
         return int(self.t.size)
 
     @staticmethod

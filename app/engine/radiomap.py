@@ -1,15 +1,15 @@
-"""Fingerprint radio maps: per reference point, each transmitter's RSSI mean, variance and
-detection rate, built from survey walks (CN106028450, seed 002, offline phase).
+"""Fingerprint radio maps built from survey walks (CN106028450, seed 002, offline phase).
 
-The patent samples a grid of reference points (cells of 0.6–1 m) by standing
-at each for a while. Survey walks give instead one scan every ~2 m along the
-walked line, located by interpolating the surveyed waypoints in time (the
-walker moved straight at constant speed between two of them). A cell therefore
-pools the scans around it with a Gaussian kernel: its statistics are the
-kernel-weighted mean, variance and detection rate of the scans within
-``radius_m``. Cells without a scan within that radius are left out rather
-than extrapolated: far from every survey the map would only repeat its
-neighbours with more confidence than it has, and the trackers would walk
+A map holds, per reference point, each transmitter's RSSI mean, variance and
+detection rate. The patent samples a grid of reference points (cells of
+0.6–1 m) by standing at each for a while. Survey walks give instead one scan
+every ~2 m along the walked line, located by interpolating the surveyed
+waypoints in time (the walker moved straight at constant speed between two of
+them). A cell therefore pools the scans around it with a Gaussian kernel: its
+statistics are the kernel-weighted mean, variance and detection rate of the
+scans within ``radius_m``. Cells without a scan within that radius are left
+out rather than extrapolated: far from every survey the map would only repeat
+its neighbours with more confidence than it has, and the trackers would walk
 into areas no one measured. Reference points are kept on the walkable area
 only.
 

@@ -29,6 +29,7 @@ class RssiReadings:
     rssi: np.ndarray = field(default_factory=_empty)
 
     def __len__(self) -> int:
+        """Return the number of readings."""
         return int(self.t.size)
 
 
@@ -43,6 +44,7 @@ class ImuSamples:
     rot: np.ndarray = field(default_factory=lambda: _empty((0, 4)))
 
     def __len__(self) -> int:
+        """Return the number of samples."""
         return int(self.t.size)
 
 
@@ -56,6 +58,7 @@ class Ranges:
     std: np.ndarray = field(default_factory=_empty)
 
     def __len__(self) -> int:
+        """Return the number of ranges."""
         return int(self.t.size)
 
 
@@ -69,6 +72,7 @@ class Fixes:
     std: np.ndarray = field(default_factory=_empty)
 
     def __len__(self) -> int:
+        """Return the number of fixes."""
         return int(self.t.size)
 
 
@@ -80,6 +84,7 @@ class Pressure:
     hpa: np.ndarray = field(default_factory=_empty)
 
     def __len__(self) -> int:
+        """Return the number of samples."""
         return int(self.t.size)
 
 
@@ -94,6 +99,7 @@ class Batch:
     pressure: Pressure = field(default_factory=Pressure)
 
     def __len__(self) -> int:
+        """Return the number of samples of every kind together."""
         return (
             len(self.rssi) + len(self.imu) + len(self.ranges) + len(self.fixes) + len(self.pressure)
         )

@@ -39,6 +39,7 @@ class Emitters:
     sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
+        """Return the number of emitters."""
         return len(self.ids)
 
     def index(self) -> dict[str, int]:

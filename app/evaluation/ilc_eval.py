@@ -54,7 +54,9 @@ from app.datasets.ilc import Walk, floor_level, imu_samples, site_walks
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate, to_emitters
 from app.engine.crossval import cross_validate
 from app.engine.floors.evidence import FloorEvidence
-from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
+from app.engine.hmm.tracker import HmmTracker
 from app.engine.particle.floor_model import FloorModel, build_floor_models
 from app.engine.pdr import PdrParams, detect_steps
 from app.engine.positioning import (

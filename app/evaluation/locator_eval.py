@@ -7,7 +7,7 @@ other tracks. On the held-out track:
 
 * ``lsq``: a 2-D RSSI least-squares fix every 0.5 s from each locator's mean
   RSSI over the last 2 s, started at the centroid of the 3 strongest.
-* ``ekf``: :class:`~app.engine.ekf.LocatorTracker` (the same fixes, started
+* ``ekf``: :class:`~app.engine.locator_tracker.LocatorTracker` (the same fixes, started
   at the filter's position, then the EKF with course from motion), open floor.
   Its fix σ floor (the model error D does not contain) is calibrated on the
   4 training tracks' raw fixes.
@@ -34,8 +34,13 @@ from app.datasets.ble_locator import (
     read_track,
     track_names,
 )
-from app.engine.ekf import LocatorTracker, LocatorTrackerParams, strongest_centroid, window_means
-from app.engine.lateration import solve
+from app.engine.lateration.solver import solve
+from app.engine.locator_tracker import (
+    LocatorTracker,
+    LocatorTrackerParams,
+    strongest_centroid,
+    window_means,
+)
 from app.engine.samples import Batch, RssiReadings
 from app.engine.site import SiteModel
 

@@ -31,7 +31,7 @@ from app.datasets import data_dir
 from app.datasets.ilc import imu_samples, read_floor, read_walk, site_walks
 from app.engine.pdr import detect_steps
 from app.engine.plan import FloorPlan
-from app.engine.trackfit import TrackFitParams, fit_track
+from app.engine.trackfit.fit import TrackFitParams, fit_track
 from app.evaluation.metrics import truth_at
 from app.evaluation.split import walk_split, walk_unit
 from app.geometry.floormap import parse_floor_map

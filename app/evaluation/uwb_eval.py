@@ -40,10 +40,10 @@ from app.datasets.uwb_trolley import (
     trolley_site,
 )
 from app.engine.accuracy_map import accuracy_at
-from app.engine.ekf import UwbTracker, UwbTrackerParams
-from app.engine.lateration import LaterationParams, solve
+from app.engine.lateration.solver import LaterationParams, solve
 from app.engine.samples import Batch, Ranges
 from app.engine.uwb_bias import survey_biases
+from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
 
 RANGE_STD_M = 0.1
 """Standard deviation given to every range (the recording carries none)."""

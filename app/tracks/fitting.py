@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from app.engine.plan import FloorPlan
-from app.engine.trackfit import TrackFitParams, fit_track
+from app.engine.trackfit.fit import TrackFitParams, fit_track
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
 

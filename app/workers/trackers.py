@@ -15,12 +15,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.engine.centroid import CentroidParams, WeightedCentroid
-from app.engine.ekf import LocatorTracker, LocatorTrackerParams, UwbTracker, UwbTrackerParams
-from app.engine.hmm import EmissionModel, HmmParams, HmmTracker
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
+from app.engine.hmm.tracker import HmmTracker
+from app.engine.locator_tracker import LocatorTracker, LocatorTrackerParams
 from app.engine.particle.floor_model import build_floor_models
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker
+from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
 from app.workers.sites import LoadedSite
 
 PF = "pf"

@@ -23,7 +23,7 @@ from app.datasets.uwb_trolley import (
     to_ranges,
     trolley_site,
 )
-from app.engine.lateration import solve
+from app.engine.lateration.solver import solve
 
 pytestmark = pytest.mark.skipif(not folder().exists(), reason="uwb_trolley recording not present")
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from app.engine.accuracy_map import AccuracyParams, accuracy_at, accuracy_grid, floor_accuracy
-from app.engine.lateration import LaterationParams, path_loss_B, solve
+from app.engine.lateration.accuracy import path_loss_B
+from app.engine.lateration.solver import LaterationParams, solve
 from app.engine.plan import FloorPlan
 from app.engine.site import Emitters, Floor, SiteModel
 

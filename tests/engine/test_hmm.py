@@ -6,14 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.engine.hmm import (
-    EmissionModel,
-    HmmParams,
-    HmmTracker,
-    propagate,
-    step_displacement,
-    transition_kernel,
-)
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
+from app.engine.hmm.tracker import HmmTracker
+from app.engine.hmm.transition import propagate, step_displacement, transition_kernel
 from app.engine.radiomap import RadioMap
 from app.engine.samples import Batch, RssiReadings
 from app.workers import snapshots

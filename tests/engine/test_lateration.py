@@ -5,17 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.engine.lateration import (
-    LaterationParams,
-    Status,
+from app.engine.lateration.accuracy import (
     covariance_checks,
     critical_condition,
-    laterate_ranges,
-    laterate_rssi,
     path_loss_B,
     predict,
-    solve,
     whitened_jacobian,
+)
+from app.engine.lateration.solver import (
+    LaterationParams,
+    Status,
+    laterate_ranges,
+    laterate_rssi,
+    solve,
 )
 
 ROOM = np.array(

@@ -15,19 +15,16 @@ import pytest
 import shapely
 
 from app.engine.plan import FloorPlan, burn_segments
-from app.engine.trackfit import (
-    NONE,
+from app.engine.trackfit.fit import (
     RELAX_CROSSED,
     RELAX_DEAD_RECKONED,
     RELAX_NONE,
     RELAX_WIDENED,
     TrackFitParams,
-    advance,
-    best_per_cell,
-    cell_grid,
     fit_track,
-    segments_free,
 )
+from app.engine.trackfit.grid import NONE, cell_grid, segments_free
+from app.engine.trackfit.step import advance, best_per_cell
 
 # Fig. 2 of the paper as a plan: a corridor (y < 2) under two rooms split by a
 # wall at x = 6, entered through doors at 3 < x < 4 and 8 < x < 9.

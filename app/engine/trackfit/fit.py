@@ -1,36 +1,9 @@
-"""Fit a dead-reckoned track to the floor plan by dynamic programming (seed 004).
+"""Fit a dead-reckoned track to the floor plan: parameters, forward and backward passes, result.
 
-A device in energy-saving mode uploads its own dead-reckoned track as links:
-a length l_i and the turn from the previous link. Step lengths are off by up
-to about 10 % and headings by a few degrees, so the raw polyline crosses
-walls. Following Voronov et al., the fitter searches the tracks obtained by
-scaling each link by γ ∈ Γ and changing each turn by φ ∈ Φ, rejects those with
-a link through a wall, a barrier or the outline, and returns the one that
-changed the input least:
-
-    f = C1 Σ |1 - γ_i| + C2 Σ |φ_i|.
-
-The search is the paper's approximate dynamic programme. The plan is cut
-into square cells S and, for every link i and cell s, only the best track of
-the first i links ending in s survives: its score f_i(s), end point ξ_i(s),
-direction ψ_i(s) and predecessor cell ζ_i(s). A backward pass from the best
-final cell gives the fitted points. Only reachable free cells are ever alive,
-so a link costs O(|S_i| |Γ| |Φ|) with |S_i| the cells the first i links can
-reach, bounded by the walkable area divided by the cell area.
-
-Two departures from the paper, both for real phone tracks (site1): the DP
-cell shrinks to the median link length when links are shorter than the grid
-(``cell_per_link``; per-step links otherwise leave the DP one track per cell
-and it turns greedy), and a link no track survives is not the end of the fit:
-it is placed by a recovery ladder (wider Γ_w and Φ_w; then crossing a wall
-with a free end, for doors the map lacks; then dead reckoning, for walkers
-where the map says nobody can be) and flagged in ``TrackFit.relaxed``.
-``recover=False, cell_per_link=0`` is the paper's algorithm.
-
-Walls are tested on the ``FloorPlan`` raster: a candidate link ending on a
-blocked cell is dropped by one gather; a link shorter than the clearance at
-its start (less the raster's cell diagonal) cannot cross anything; only the
-remaining links are sampled with ``FloorPlan.segment_free``.
+The forward pass runs the dynamic programme link by link (``step``), with the
+recovery ladder for a link no track survives; the backward pass follows the
+predecessors from the best final cell and replays the chosen lengths and
+turns into points.
 """
 
 from __future__ import annotations
@@ -40,9 +13,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
 from app.engine.plan import FloorPlan
+from app.engine.trackfit.grid import cell_grid
+from app.engine.trackfit.step import advance
 
 
 @dataclass(frozen=True)
@@ -177,285 +151,10 @@ class TrackFit:
     cell: float = 0.0
 
 
-@dataclass(frozen=True)
-class CellGrid:
-    """The DP cells over the plan and the wall-test lookups derived from its raster.
-
-    Raster lookups work in padded raster units ``u = (x - origin) / rcell +
-    pad``: the raster gets ``pad`` blocked cells on every side, more than the
-    longest move, so every candidate end point indexes the arrays without a
-    bounds test. ``best``, ``first`` and ``mark`` are per-DP-cell scratch
-    arrays of ``advance``, +inf, ``NONE`` and False between calls: resetting
-    only the touched cells keeps a link's cost independent of the floor's size.
-    """
-
-    origin: np.ndarray
-    """x, y (m) of the lower-left corner of the plan's raster."""
-    cell: float
-    """DP cell side (m)."""
-    nx: int
-    ny: int
-    rcell: float
-    """Raster cell side (m)."""
-    pad: int
-    free: np.ndarray = field(repr=False)
-    """Padded free raster, bool (ny_r + 2 pad, nx_r + 2 pad)."""
-    safe: np.ndarray = field(repr=False)
-    """Flat over the padded raster (m): no point of a blocked cell lies closer
-    than this to any point of the cell (may be negative)."""
-    safe_end: np.ndarray = field(repr=False)
-    """``max(safe, 0)``, flat."""
-    best: np.ndarray = field(repr=False)
-    first: np.ndarray = field(repr=False)
-    mark: np.ndarray = field(repr=False)
-
-
-NONE = np.iinfo(np.int64).max
-"""Empty slot of ``CellGrid.first``."""
-
-MAX_SAMPLES = 1 << 21
-"""Largest number of raster samples one wall-test chunk holds in memory."""
-
-
-def cell_grid(plan: FloorPlan, cell: float, reach: float) -> CellGrid:
-    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long."""
-    ny_r, nx_r = plan.shape
-    free = plan.free
-    border = np.r_[free[0], free[-1], free[:, 0], free[:, -1]]
-    if border.any():
-        # A free cell on the raster's edge is next to "outside", which the
-        # plan's clearance does not see: measure it on a blocked-padded copy.
-        clearance = ndimage.distance_transform_edt(np.pad(free, 1))[1:-1, 1:-1] * plan.cell
-    else:
-        clearance = plan.clearance
-    # Any point of a blocked cell is at least D - √2·cell from any point of a
-    # cell whose centre is D from that blocked cell's centre.
-    safe = np.asarray(clearance, dtype=np.float32) - np.float32(np.sqrt(2.0) * plan.cell)
-    pad = int(np.ceil(reach / plan.cell)) + 2
-    safe = np.pad(safe, pad, constant_values=-np.inf).ravel()
-    nx = int(np.ceil(nx_r * plan.cell / cell))
-    ny = int(np.ceil(ny_r * plan.cell / cell))
-    return CellGrid(
-        origin=np.asarray(plan.origin, dtype=float),
-        cell=float(cell),
-        nx=nx,
-        ny=ny,
-        rcell=float(plan.cell),
-        pad=pad,
-        free=np.pad(free, pad, constant_values=False),
-        safe=safe,
-        safe_end=np.maximum(safe, np.float32(0.0)),
-        best=np.full(nx * ny, np.inf),
-        first=np.full(nx * ny, NONE, dtype=np.int64),
-        mark=np.zeros(nx * ny, dtype=bool),
-    )
-
-
-def segments_free(
-    free: np.ndarray, start: np.ndarray, end: np.ndarray, max_len: float
-) -> np.ndarray:
-    """Return whether each straight move between raster coordinates stays on free cells.
-
-    The same test as ``FloorPlan.segment_free`` (samples every half cell,
-    which supercover-burnt walls cannot slip between), on coordinates already
-    in raster units and known to lie in the raster, without the end points
-    (known free), in chunks of bounded memory.
-
-    Parameters
-    ----------
-    free : ndarray of bool, shape (ny, nx)
-        Free raster.
-    start, end : ndarray, shape (m, 2)
-        Move ends in raster units (column, row as floats, non-negative).
-    max_len : float
-        Upper bound of the move lengths (raster cells).
-
-    Returns
-    -------
-    ndarray of bool, shape (m,)
-    """
-    nx = free.shape[1]
-    flat = free.ravel()
-    steps = max(1, int(np.ceil(max_len / 0.5)))
-    # interior sample fractions k / steps, k = 1 … steps - 1
-    frac = np.arange(1, steps) / steps
-    out = np.ones(start.shape[0], dtype=bool)
-    if frac.size == 0:
-        return out
-    chunk = max(1, MAX_SAMPLES // frac.size)
-    for lo in range(0, start.shape[0], chunk):
-        a, b = start[lo : lo + chunk], end[lo : lo + chunk]
-        # u = a + k/steps (b - a)
-        col = (a[:, 0] + frac[:, None] * (b[:, 0] - a[:, 0])).astype(np.int64)
-        row = (a[:, 1] + frac[:, None] * (b[:, 1] - a[:, 1])).astype(np.int64)
-        out[lo : lo + chunk] = flat[row * nx + col].all(axis=0)
-    return out
-
-
 def _ordered(values: tuple[float, ...], centre: float) -> np.ndarray:
     """Return the values sorted by distance from ``centre`` then value: ties prefer less change."""
     arr = np.asarray(values, dtype=float)
     return arr[np.lexsort((arr, np.abs(arr - centre)))]
-
-
-def best_per_cell(grid: CellGrid, dest: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """Return the position of the least-score entry of each destination cell.
-
-    Of equal scores the earliest entry wins.
-
-    Parameters
-    ----------
-    grid : CellGrid
-        Supplies the scratch arrays (left as found).
-    dest : ndarray of int64, shape (M,)
-        Flat DP cell of each entry.
-    score : ndarray, shape (M,)
-        Score of each entry.
-
-    Returns
-    -------
-    ndarray of int64, shape (C,)
-        One position into the inputs per distinct cell, increasing.
-    """
-    best, first = grid.best, grid.first
-    # best(s) = min score over entries into s, by an unbuffered scatter-min
-    np.minimum.at(best, dest, score)
-    tie = np.flatnonzero(score == best[dest])
-    np.minimum.at(first, dest[tie], tie)
-    won = tie[first[dest[tie]] == tie]
-    best[dest] = np.inf
-    first[dest] = NONE
-    return won
-
-
-def advance(
-    grid: CellGrid,
-    xi: np.ndarray,
-    psi: np.ndarray,
-    f: np.ndarray,
-    lengths: np.ndarray,
-    rel: np.ndarray,
-    cost: np.ndarray,
-    *,
-    free_end: bool = True,
-    walls: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Extend every surviving track by one link and keep the best per destination cell.
-
-    Parameters
-    ----------
-    grid : CellGrid
-        The DP cells, wall-test lookups and scratch arrays, from ``cell_grid``.
-    xi : ndarray, shape (K, 2)
-        End points ξ (m) of the K surviving tracks, on free cells.
-    psi : ndarray, shape (K,)
-        Direction ψ (rad) of their last link.
-    f : ndarray, shape (K,)
-        Their scores.
-    lengths : ndarray, shape (G,)
-        Candidate lengths γ l_i (m) of the new link, at most the grid's reach.
-    rel : ndarray, shape (A,)
-        Candidate directions of the new link relative to ψ (rad).
-    cost : ndarray, shape (G, A)
-        Score added by each (length, direction) choice.
-    free_end : bool
-        Drop candidates ending on a blocked raster cell. Without it (the last
-        resort of a dead link) only ends off the raster are dropped.
-    walls : bool
-        Drop candidates whose move crosses a blocked cell.
-
-    Returns
-    -------
-    cells : ndarray of int64, shape (K',)
-        Flat DP cells (row-major) holding a track after the link, increasing.
-    xi, psi, f : ndarray, shapes (K', 2), (K',), (K',)
-        End point, direction and score of the best track in each.
-    pred : ndarray of int64, shape (K',)
-        Row in the input arrays of each track's predecessor.
-    choice : ndarray of int64, shape (K',)
-        Chosen candidate ``g * A + a``.
-
-    Notes
-    -----
-    Of equal scores the candidate with the lowest (predecessor row, g, a)
-    wins, so results do not depend on summation or scatter order.
-    """
-    n_a = cost.shape[1]
-    nxp = grid.free.shape[1]
-    # θ = ψ + rel
-    ang = psi[:, None] + rel[None, :]
-    cos, sin = np.cos(ang), np.sin(ang)
-    # u₀ = (ξ - origin) / cell + pad, the start in padded raster units
-    u0 = (xi - grid.origin) / grid.rcell + grid.pad
-    step = lengths / grid.rcell
-    # v = ξ + γ l (cos θ, sin θ), candidates laid out (K, G, A)
-    ux = step[None, :, None] * cos[:, None, :]
-    ux += u0[:, 0, None, None]
-    uy = step[None, :, None] * sin[:, None, :]
-    uy += u0[:, 1, None, None]
-    # Raster cell of v (non-negative thanks to the padding, so truncation is ⌊u⌋).
-    cell = uy.astype(np.int64)
-    cell *= nxp
-    cell += ux.astype(np.int64)
-    if free_end:
-        ok = grid.free.ravel()[cell]
-    else:
-        # Anywhere on the raster (so later moves stay in the padding): nobody
-        # walks off the floor plan's extent.
-        ny_r, nx_r = grid.free.shape[0] - 2 * grid.pad, nxp - 2 * grid.pad
-        ok = (ux >= grid.pad) & (ux < grid.pad + nx_r) & (uy >= grid.pad) & (uy < grid.pad + ny_r)
-    # C order: position in the surviving list increases with (k, g, a).
-    k, g, a = np.nonzero(ok)
-    cell, ux, uy = cell[ok], ux[ok], uy[ok]
-
-    # f_i = f_{i-1}(σ) + C1 |1 - γ| + C2 |φ|
-    score = f[k] + cost[g, a]
-    # DP cell of v: ⌊(u - pad) rcell / cell⌋
-    ratio = grid.rcell / grid.cell
-    dest = ((uy - grid.pad) * ratio).astype(np.int64) * grid.nx
-    dest += ((ux - grid.pad) * ratio).astype(np.int64)
-
-    # Two free discs, radius safe(ξ) around the start and safe(v) around the
-    # end, cover the move when γ l < safe(ξ) + max(safe(v), 0): no sampling.
-    c0 = u0.astype(np.int64)
-    safe0 = grid.safe[c0[:, 1] * nxp + c0[:, 0]]
-    needs = lengths[g] >= safe0[k] + grid.safe_end[cell]
-    if not walls:
-        needs[:] = False
-
-    def clear(pos: np.ndarray) -> np.ndarray:
-        """Sampled wall test of the candidates at positions ``pos``."""
-        end = np.column_stack([ux[pos], uy[pos]])
-        return segments_free(grid.free, u0[k[pos]], end, float(step.max()))
-
-    # Sampling only the winners first gives the same result as sampling every
-    # candidate: a cell whose winner proves clear keeps it, and only the cells
-    # whose winner crosses a wall are decided again, all their moves sampled.
-    won = best_per_cell(grid, dest, score)
-    test = won[needs[won]]
-    bad = test[~clear(test)]
-    if bad.size:
-        grid.mark[dest[bad]] = True
-        sub = np.flatnonzero(grid.mark[dest])
-        grid.mark[dest[bad]] = False
-        crossed = np.zeros(score.size, dtype=bool)
-        recheck = sub[needs[sub]]
-        crossed[recheck] = ~clear(recheck)
-        sub = sub[~crossed[sub]]
-        dropped = np.zeros(score.size, dtype=bool)
-        dropped[bad] = True
-        won = np.concatenate([won[~dropped[won]], sub[best_per_cell(grid, dest[sub], score[sub])]])
-    won = won[np.argsort(dest[won])]
-
-    pred = k[won]
-    return (
-        dest[won],
-        grid.origin + grid.rcell * (np.column_stack([ux[won], uy[won]]) - grid.pad),
-        ang[pred, a[won]],
-        score[won],
-        pred,
-        g[won] * n_a + a[won],
-    )
 
 
 @dataclass(frozen=True)
@@ -563,7 +262,7 @@ def fit_track(
         raise ValueError("grid and first_step must be positive, scales and turns non-empty")
 
     def options_for(scale_set: tuple[float, ...], turn_set: tuple[float, ...]) -> list[LinkOptions]:
-        """Candidates of every link for one (Γ, Φ) pair."""
+        """Return the candidates of every link for one (Γ, Φ) pair."""
         scales = _ordered(scale_set, 1.0)
         phis = _ordered(turn_set, 0.0)
         # C1 |1 - γ| + C2 |φ| per (γ, φ)

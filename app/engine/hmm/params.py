@@ -1,0 +1,90 @@
+"""Tunable constants of the fingerprint + inertial HMM (seed 002)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class HmmParams:
+    """Tunable constants of the fingerprint + inertial HMM.
+
+    Attributes
+    ----------
+    k : int
+        Neighbours of the k-NN initial position (the patent's 3–5).
+    missing_dbm : float
+        RSSI of a missing reading in the k-NN distance.
+    init_std_m : float
+        Spread (m) of the initial distribution around the k-NN position.
+    step_length_std_m : float
+        σ_d of a step's length (m), the patent's 0.1 m.
+    heading_std_deg : float
+        σ_φ of a step's heading (degrees): PDR headings on ILC site1 are off by
+        about 9.4° in median, i.e. σ ≈ 14° if Gaussian.
+    walk_noise_m2_per_s : float
+        Random-walk variance (m²/s) added between scans: steps PDR missed or
+        mis-sized.
+    transition_threshold : float
+        P_T: reference points whose transition probability falls below this
+        are dropped from the distribution (the sparse support).
+    kernel_sigmas : float
+        The transition kernel is cut at this many standard deviations.
+    emission_weight : float
+        Exponent tempering the product of per-transmitter likelihoods.
+    loglik_floor : float
+        Floor (nats) of one heard transmitter's log-likelihood at a point.
+    unmapped_dbm : float
+        Mean RSSI (dBm) assumed at points where a transmitter was never heard:
+        the sensitivity floor.
+    unmapped_var_db2 : float
+        Variance (dB²) around ``unmapped_dbm``.
+    unmapped_detect : float
+        Detection rate of a transmitter absent from a floor's map.
+    floor_switch_prob : float
+        Probability per scan that the floor changes.
+    floor_switch_posterior : float
+        Belief another floor must reach before the tracked floor changes.
+    relocate_margin : float
+        Restart from k-NN when the best point of the floor explains the scan
+        better than the predicted distribution by more than this (nats,
+        tempered).
+    emit_every_ms : int
+        Without steps or scans, still emit an estimate this often.
+    imu_wait_ms : int
+        A scan is used once IMU samples this much later have arrived, so the
+        steps before it are known.
+    imu_timeout_ms : int
+        If the IMU stream lags the radio by more than this, scans go ahead without it.
+    min_accuracy_m : float
+        Smallest accuracy radius reported (m): the grid and the survey's own error.
+    accuracy_floor_m : float
+        Error (m) added in quadrature to the posterior's 68% radius: the
+        posterior knows the maps' noise, not how far the fingerprints
+        themselves are from the truth. The server sets it per site to the
+        median held-out error of its radio-map build; on ILC site1's
+        validation walks that put 69.5% of the errors inside the radius,
+        against 11% without.
+    """
+
+    k: int = 4
+    missing_dbm: float = -100.0
+    init_std_m: float = 5.0
+    step_length_std_m: float = 0.1
+    heading_std_deg: float = 15.0
+    walk_noise_m2_per_s: float = 0.05
+    transition_threshold: float = 1e-6
+    kernel_sigmas: float = 3.0
+    emission_weight: float = 0.2
+    loglik_floor: float = -8.0
+    unmapped_dbm: float = -95.0
+    unmapped_var_db2: float = 36.0
+    unmapped_detect: float = 0.02
+    floor_switch_prob: float = 1e-3
+    floor_switch_posterior: float = 0.99
+    relocate_margin: float = 10.0
+    emit_every_ms: int = 1000
+    imu_wait_ms: int = 100
+    imu_timeout_ms: int = 3000
+    min_accuracy_m: float = 1.0
+    accuracy_floor_m: float = 0.0

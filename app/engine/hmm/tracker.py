@@ -1,0 +1,322 @@
+"""One device's HMM: PDR steps and WiFi scans in, positions and floor out (seed 002)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.special import logsumexp
+
+from app.engine.gaussian import R68_SIGMAS_2D
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
+from app.engine.hmm.transition import propagate, step_displacement, transition_kernel
+from app.engine.pdr import Pdr, PdrParams, Steps
+from app.engine.samples import Batch, Estimate
+from app.engine.wknn import scans_of, unique_readings
+
+_PDR_KEYS = tuple(Pdr().snapshot())
+"""Keys of a PDR snapshot; those holding None are left out of the HMM's snapshot."""
+
+
+class HmmTracker:
+    """One device's HMM: PDR steps and WiFi scans in, positions out.
+
+    Parameters
+    ----------
+    model : EmissionModel
+        The site's prepared radio maps (shared by all devices).
+    params : HmmParams
+        HMM constants.
+    pdr_params : PdrParams
+        Step detection constants (its heading offset aligns headings with the site).
+    state : dict, optional
+        A ``snapshot()`` to resume from.
+    """
+
+    method = "hmm"
+
+    def __init__(
+        self,
+        model: EmissionModel,
+        params: HmmParams,
+        pdr_params: PdrParams | None = None,
+        state: dict[str, Any] | None = None,
+    ) -> None:
+        self.model = model
+        self.params = params
+        self.pdr_params = pdr_params or PdrParams()
+        n_maps = len(model.maps)
+        if state is None:
+            self.pdr = Pdr(self.pdr_params)
+            self.map = -1
+            self.floor_logp = np.full(n_maps, -np.log(n_maps))
+            self.prob = np.zeros(0)
+            self.d = np.zeros(2)
+            self.cov = np.zeros((2, 2))
+            self.t_scan = -1
+            self.t_emit = -1
+            self.t_imu = -1
+            self.t_last = -1
+            self.heading = float("nan")
+            self.speed = float("nan")
+            self.t_step = -1
+            self.scan_t = np.zeros(0, dtype=np.int64)
+            self.scan_tx = np.zeros(0, dtype=np.int32)
+            self.scan_rssi = np.zeros(0)
+            self.steps = Steps()
+        else:
+            self._restore(state)
+
+    # -- state -----------------------------------------------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return the state as plain numbers and arrays (PDR state under ``pdr.`` keys)."""
+        nz = np.flatnonzero(self.prob)
+        state: dict[str, Any] = {
+            "map": self.map,
+            "floor_logp": self.floor_logp.copy(),
+            "n_points": int(self.prob.size),
+            "prob_index": nz.astype(np.int32),
+            "prob_value": self.prob[nz].copy(),
+            "d": self.d.copy(),
+            "cov": self.cov.copy(),
+            "t_scan": self.t_scan,
+            "t_emit": self.t_emit,
+            "t_imu": self.t_imu,
+            "t_last": self.t_last,
+            "heading": self.heading,
+            "speed": self.speed,
+            "t_step": self.t_step,
+            "scan_t": self.scan_t.copy(),
+            "scan_tx": self.scan_tx.copy(),
+            "scan_rssi": self.scan_rssi.copy(),
+            "steps_t": self.steps.t.copy(),
+            "steps_length": self.steps.length.copy(),
+            "steps_heading": self.steps.heading.copy(),
+        }
+        # None (not yet known) is left out: snapshots hold numbers and arrays only
+        for key, value in self.pdr.snapshot().items():
+            if value is not None:
+                state[f"pdr.{key}"] = value
+        return state
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        self.pdr = Pdr.from_snapshot({k: state.get(f"pdr.{k}") for k in _PDR_KEYS}, self.pdr_params)
+        self.map = int(state["map"])
+        self.floor_logp = np.asarray(state["floor_logp"], dtype=float)
+        self.prob = np.zeros(int(state["n_points"]))
+        self.prob[np.asarray(state["prob_index"], dtype=np.int64)] = state["prob_value"]
+        self.d = np.asarray(state["d"], dtype=float)
+        self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
+        self.t_scan = int(state["t_scan"])
+        self.t_emit = int(state["t_emit"])
+        self.t_imu = int(state["t_imu"])
+        self.t_last = int(state["t_last"])
+        self.heading = float(state["heading"])
+        self.speed = float(state["speed"])
+        self.t_step = int(state["t_step"])
+        self.scan_t = np.asarray(state["scan_t"], dtype=np.int64)
+        self.scan_tx = np.asarray(state["scan_tx"], dtype=np.int32)
+        self.scan_rssi = np.asarray(state["scan_rssi"], dtype=float)
+        self.steps = Steps(
+            t=np.asarray(state["steps_t"], dtype=np.int64),
+            length=np.asarray(state["steps_length"], dtype=float),
+            heading=np.asarray(state["steps_heading"], dtype=float),
+            swing=np.zeros(np.asarray(state["steps_t"]).size),
+        )
+
+    @classmethod
+    def from_snapshot(
+        cls,
+        model: EmissionModel,
+        params: HmmParams,
+        state: dict[str, Any],
+        pdr_params: PdrParams | None = None,
+    ) -> HmmTracker:
+        """Rebuild a tracker from ``snapshot()`` output."""
+        return cls(model, params, pdr_params, state)
+
+    # -- processing ------------------------------------------------------------
+
+    def process(self, batch: Batch) -> list[Estimate]:
+        """Consume one time-ordered batch; return estimates at steps, scans and each second."""
+        if len(batch.imu):
+            new = self.pdr.update(batch.imu)
+            self.steps = Steps.concat([self.steps, new]) if len(new) else self.steps
+            self.t_imu = max(self.t_imu, int(np.max(batch.imu.t)))
+            self.t_last = max(self.t_last, self.t_imu)
+        r = batch.rssi
+        if len(r):
+            self.scan_t = np.concatenate([self.scan_t, np.asarray(r.t, dtype=np.int64)])
+            self.scan_tx = np.concatenate([self.scan_tx, np.asarray(r.tx, dtype=np.int32)])
+            self.scan_rssi = np.concatenate([self.scan_rssi, np.asarray(r.rssi, dtype=float)])
+            self.t_last = max(self.t_last, int(np.max(r.t)))
+        return self._run()
+
+    def _ready_until(self) -> int:
+        """Return the latest scan time that may be processed now."""
+        p = self.params
+        if self.t_imu < 0 or self.t_last - self.t_imu > p.imu_timeout_ms:
+            return self.t_last
+        return self.t_imu - p.imu_wait_ms
+
+    def _run(self) -> list[Estimate]:
+        out: list[Estimate] = []
+        ready = self._ready_until()
+        groups = scans_of(self.scan_t)
+        done = [g for g in groups if self.scan_t[g[0]] <= ready]
+        waiting_from = min(
+            (int(self.scan_t[g[0]]) for g in groups if len(g) and self.scan_t[g[0]] > ready),
+            default=None,
+        )
+        step_ok = (
+            np.ones(len(self.steps), dtype=bool)
+            if waiting_from is None
+            else self.steps.t < waiting_from
+        )
+        events: list[tuple[int, int, Any]] = [
+            (int(t), 0, i)
+            for i, t in zip(np.flatnonzero(step_ok), self.steps.t[step_ok], strict=True)
+        ]
+        events += [(int(self.scan_t[g[0]]), 1, g) for g in done]
+        events.sort(key=lambda e: (e[0], e[1]))
+        for t, kind, item in events:
+            self._heartbeat(t, out)
+            if kind == 0:
+                self._step(item, out)
+            else:
+                self._scan(t, item, out)
+        used = np.zeros(self.scan_t.size, dtype=bool)
+        for g in done:
+            used[g] = True
+        self.scan_t, self.scan_tx, self.scan_rssi = (
+            self.scan_t[~used],
+            self.scan_tx[~used],
+            self.scan_rssi[~used],
+        )
+        keep = ~step_ok
+        self.steps = Steps(
+            t=self.steps.t[keep],
+            length=self.steps.length[keep],
+            heading=self.steps.heading[keep],
+            swing=self.steps.swing[keep],
+        )
+        horizon = ready if waiting_from is None else min(ready, waiting_from)
+        self._heartbeat(horizon, out)
+        return out
+
+    def _heartbeat(self, t: int, out: list[Estimate]) -> None:
+        """Emit at every whole ``emit_every_ms`` since the last estimate, up to ``t``."""
+        if self.map < 0 or self.t_emit < 0:
+            return
+        while t - self.t_emit >= self.params.emit_every_ms:
+            out.append(self._estimate(self.t_emit + self.params.emit_every_ms))
+
+    def _step(self, i: int, out: list[Estimate]) -> None:
+        p = self.params
+        length = self.steps.length[i : i + 1]
+        heading = self.steps.heading[i : i + 1]
+        d, cov = step_displacement(length, heading, p.step_length_std_m, p.heading_std_deg)
+        self.d = self.d + d
+        self.cov = self.cov + cov
+        t = int(self.steps.t[i])
+        if self.t_step >= 0 and t > self.t_step:
+            # v = L / Δt
+            self.speed = float(length[0]) * 1000.0 / (t - self.t_step)
+        self.t_step = t
+        if np.isfinite(heading[0]):
+            self.heading = float(heading[0])
+        if self.map >= 0:
+            out.append(self._estimate(t))
+
+    def _scan(self, t: int, index: np.ndarray, out: list[Estimate]) -> None:
+        p, model = self.params, self.model
+        tx, rssi = unique_readings(self.scan_tx[index], self.scan_rssi[index])
+        ll = [model.log_likelihood(f, tx, rssi) for f in range(len(model.maps))]
+        # per-floor marginal: ln mean_j L_j
+        marginal = np.array([logsumexp(v) - np.log(v.size) for v in ll])
+        n = marginal.size
+        stay = np.exp(self.floor_logp)
+        eps = p.floor_switch_prob
+        # π_f = (1 - ε) b_f + ε (1 - b_f) / (n - 1)
+        prior = (1.0 - eps) * stay + (eps * (1.0 - stay) / (n - 1) if n > 1 else 0.0)
+        logp = np.log(np.maximum(prior, 1e-300)) + marginal
+        self.floor_logp = logp - logsumexp(logp)
+        best = int(np.argmax(self.floor_logp))
+        if self.map < 0 or (
+            best != self.map and np.exp(self.floor_logp[best]) >= p.floor_switch_posterior
+        ):
+            self._start(best, tx, rssi, ll[best])
+        else:
+            self._update(t, ll[self.map], tx, rssi)
+        self.t_scan = t
+        out.append(self._estimate(t))
+
+    def _start(self, f: int, tx: np.ndarray, rssi: np.ndarray, ll: np.ndarray) -> None:
+        """(Re)start the position on map ``f``: k-NN prior times the scan's emission."""
+        p, model = self.params, self.model
+        x0 = model.knn(f, tx, rssi, p.k)
+        xy = model.xy[f]
+        # ln p₀_j = -|x_j - x₀|² / 2σ₀² + w ln L_j
+        logp = -0.5 * np.sum((xy - x0) ** 2, axis=1) / p.init_std_m**2 + ll
+        self.map = f
+        self.prob = self._normalised(logp)
+        self.d = np.zeros(2)
+        self.cov = np.zeros((2, 2))
+
+    def _update(self, t: int, ll: np.ndarray, tx: np.ndarray, rssi: np.ndarray) -> None:
+        """Transition by the steps since the last scan, then weigh by the scan's emission."""
+        p, model = self.params, self.model
+        m = model.maps[self.map]
+        dt = max(t - self.t_scan, 0) / 1000.0 if self.t_scan >= 0 else 0.0
+        # Σ = Σ_steps + q Δt I + cell²/6 I (quantisation of source and target cells)
+        cov = self.cov + np.eye(2) * (p.walk_noise_m2_per_s * dt + m.cell**2 / 6.0)
+        kernel, h = transition_kernel(self.d, cov, m.cell, p.kernel_sigmas)
+        prior = propagate(self.prob, m.ij, model.grids[self.map], kernel, h)
+        total = prior.sum()
+        if total > 0:
+            prior /= total
+        # keep points whose transition probability exceeds P_T
+        prior[prior < p.transition_threshold] = 0.0
+        self.d = np.zeros(2)
+        self.cov = np.zeros((2, 2))
+        with np.errstate(divide="ignore"):
+            log_prior = np.log(prior)
+        predictive = logsumexp(log_prior + ll) if prior.any() else -np.inf
+        if predictive < ll.max() - p.relocate_margin:
+            self._start(self.map, tx, rssi, ll)
+            return
+        self.prob = self._normalised(log_prior + ll)
+
+    @staticmethod
+    def _normalised(logp: np.ndarray) -> np.ndarray:
+        # p_j = exp(ln p_j - max) / Σ
+        w = np.exp(logp - np.max(logp))
+        return w / w.sum()
+
+    def _estimate(self, t: int) -> Estimate:
+        p, model = self.params, self.model
+        xy = model.xy[self.map]
+        nz = np.flatnonzero(self.prob)
+        w = self.prob[nz]
+        # x̂ = Σ p_j x_j + D
+        mean = w @ xy[nz]
+        dev = xy[nz] - mean
+        # C = Σ p_j (x_j - x̂)(x_j - x̂)ᵀ + Σ_D
+        cov = np.einsum("n,ni,nj->ij", w, dev, dev) + self.cov
+        pos = mean + self.d
+        radius = max(p.min_accuracy_m, R68_SIGMAS_2D * float(np.sqrt(np.trace(cov) / 2.0)))
+        accuracy = float(np.hypot(radius, p.accuracy_floor_m))
+        self.t_emit = t
+        return Estimate(
+            t=int(t),
+            x=float(pos[0]),
+            y=float(pos[1]),
+            z=0.0,
+            floor=int(model.floors[self.map]),
+            heading=self.heading,
+            accuracy=accuracy,
+            speed=self.speed,
+            method=self.method,
+        )
