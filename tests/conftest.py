@@ -19,9 +19,9 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from app.core.bootstrap import bootstrap_admin
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker, upgrade_database
+from app.keys.bootstrap import bootstrap_admin
 from app.main import create_app
 
 ADMIN_KEY = "lk_test_admin_key"

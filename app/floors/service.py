@@ -8,8 +8,9 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.core.errors import Invalid, NotFound
 from app.floors.models import Floor
-from app.geometry.floormap import parse_floor_map, summarize
+from app.geometry.floormap import FloorMapError, parse_floor_map, summarize
 from app.geometry.raster import floor_plan
 from app.sites.models import Site
 from app.sites.service import bump_map_version
@@ -18,6 +19,14 @@ from app.sites.service import bump_map_version
 def get_floor(*, db: Session, site_id: str, floor_id: str) -> Floor | None:
     """Return the floor or None."""
     return db.get(Floor, (site_id, floor_id))
+
+
+def require_floor(*, db: Session, site_id: str, floor_id: str) -> Floor:
+    """Return the floor or raise NotFound."""
+    floor = get_floor(db=db, site_id=site_id, floor_id=floor_id)
+    if floor is None:
+        raise NotFound(f"floor '{floor_id}' not found in site '{site_id}'")
+    return floor
 
 
 def list_floors(*, db: Session, site_id: str) -> list[Floor]:
@@ -29,8 +38,15 @@ def list_floors(*, db: Session, site_id: str) -> list[Floor]:
 def put_floor(
     *, db: Session, site: Site, floor_id: str, doc: dict[str, Any], raster_cell: float
 ) -> Floor:
-    """Validate ``doc`` (raises FloorMapError listing every problem), rasterise and store it."""
-    fmap = parse_floor_map(doc)
+    """Validate ``doc`` (Invalid listing every problem), rasterise and store it."""
+    try:
+        fmap = parse_floor_map(doc)
+    except FloorMapError as exc:
+        raise Invalid(
+            f"floor map rejected: {len(exc.problems)} problem(s)",
+            code="invalid_floor_map",
+            details=[p.as_dict() for p in exc.problems],
+        ) from exc
     plan = floor_plan(fmap, cell=raster_cell)
     summary = summarize(fmap) | {
         "raster": {

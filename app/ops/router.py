@@ -7,8 +7,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 from sqlalchemy import text
 
-from app.core.errors import ApiError
-from app.core.state import StateDep
+from app.core.errors import Unavailable
+from app.state import StateDep
 
 router = APIRouter(tags=["operations"])
 
@@ -38,7 +38,7 @@ def readyz(state: StateDep) -> Health:
         database = False
     workers = state.runtime.broker.healthy() if state.runtime is not None else True
     if not (database and workers):
-        raise ApiError(503, "not ready", details=[{"database": database, "workers": workers}])
+        raise Unavailable("not ready", details=[{"database": database, "workers": workers}])
     return Health(status="ready", database=database, workers=workers)
 
 

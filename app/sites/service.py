@@ -5,6 +5,7 @@ from __future__ import annotations
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
+from app.core.errors import NotFound
 from app.devices.models import DeviceState
 from app.positions.models import Position
 from app.sites.models import Site
@@ -14,6 +15,14 @@ from app.sites.schemas import SiteUpsert
 def get_site(*, db: Session, site_id: str) -> Site | None:
     """Return the site or None."""
     return db.get(Site, site_id)
+
+
+def require_site(*, db: Session, site_id: str) -> Site:
+    """Return the site or raise NotFound."""
+    site = db.get(Site, site_id)
+    if site is None:
+        raise NotFound(f"site '{site_id}' not found")
+    return site
 
 
 def upsert_site(*, db: Session, site_id: str, body: SiteUpsert) -> tuple[Site, bool]:

@@ -6,15 +6,17 @@ import json
 import zlib
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from app.floors.service import require_floor
 from app.surveys.models import Survey
 from app.surveys.schemas import SurveyCreate
 
 
 def create_survey(*, db: Session, site_id: str, body: SurveyCreate) -> Survey:
-    """Store a recording, its samples as compressed JSON."""
+    """Store a recording on one of the site's floors, its samples as compressed JSON."""
+    require_floor(db=db, site_id=site_id, floor_id=body.floor_id)
     payload = body.model_dump(exclude={"device_id", "floor_id", "name"}, exclude_none=True)
     survey = Survey(
         site_id=site_id,
@@ -29,10 +31,16 @@ def create_survey(*, db: Session, site_id: str, body: SurveyCreate) -> Survey:
     return survey
 
 
-def list_surveys(*, db: Session, site_id: str, limit: int, offset: int) -> list[Survey]:
-    """Return a page of the site's surveys, oldest first."""
+def count_surveys(*, db: Session, site_id: str) -> int:
+    """Return the number of surveys stored for the site."""
+    return db.scalar(select(func.count()).where(Survey.site_id == site_id)) or 0
+
+
+def list_surveys(*, db: Session, site_id: str, limit: int, offset: int) -> tuple[list[Survey], int]:
+    """Return a page of the site's surveys, oldest first, and their total."""
     query = select(Survey).where(Survey.site_id == site_id).order_by(Survey.id)
-    return list(db.scalars(query.limit(limit).offset(offset)))
+    rows = list(db.scalars(query.limit(limit).offset(offset)))
+    return rows, count_surveys(db=db, site_id=site_id)
 
 
 def survey_samples(survey: Survey) -> dict[str, Any]:

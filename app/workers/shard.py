@@ -21,10 +21,10 @@ from app.core.db import session_scope
 from app.core.time import now_ms
 from app.engine.samples import Batch, Estimate
 from app.positions.models import Position
+from app.sites.assembly import assemble_site
 from app.sites.models import Site
 from app.workers import snapshots
 from app.workers.device import DeviceSession
-from app.workers.sites import load_site
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
 from app.workers.trackers import (
     RADIO_KINDS,
@@ -78,7 +78,7 @@ class Shard:
         if row is None:
             self.engines.pop(site_id, None)
             return None
-        loaded = load_site(db=db, site=row, raster_cell=self.settings.raster_cell)
+        loaded = assemble_site(db=db, site=row, raster_cell=self.settings.raster_cell)
         engines = SiteEngines.for_site(loaded)
         self.engines[site_id] = engines
         log.info("shard %d loaded site %s v%d", self.shard, site_id, loaded.version)

@@ -21,7 +21,7 @@ from app.engine.particle import build_floor_models
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker
-from app.workers.sites import LoadedSite
+from app.sites.assembly import LoadedSite
 
 PF = "pf"
 CENTROID = "centroid"

@@ -34,7 +34,7 @@ def test_survey_is_stored_with_counts(client: TestClient, admin: dict, site_id: 
         "uwb_fix": 0,
         "baro": 0,
     }
-    with client.app.state.sessions() as db:
+    with client.app.state.locus.sessions() as db:
         stored = survey_samples(db.get(Survey, body["id"]))
     assert stored["waypoints"][1] == {"t": T0 + 10_000, "x": 9.0, "y": 8.0}
     assert stored["wifi"][0]["rssi"] == -61

@@ -1,37 +1,17 @@
-"""Request dependencies: settings, database session, authentication, site access."""
+"""Request authentication: the caller's key resolved to a principal, and role checks."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request, WebSocket
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
-from app.core.config import Settings
-from app.core.errors import ApiError
+from app.core.errors import ApiError, Forbidden
 from app.core.security import Principal
 from app.keys.service import cached_key, resolve_key
-
-
-async def _settings(request: Request) -> Settings:
-    return request.app.state.locus.settings
-
-
-SettingsDep = Annotated[Settings, Depends(_settings)]
-
-
-def get_db(request: Request) -> Iterator[Session]:
-    """Yield a session from the app's factory; handlers commit what they change."""
-    session = request.app.state.sessions()
-    try:
-        yield session
-    finally:
-        session.close()
-
-
-SessionDep = Annotated[Session, Depends(get_db)]
+from app.state import app_state
 
 
 def bearer_key(authorization: str | None, query_key: str | None = None) -> str | None:
@@ -50,7 +30,7 @@ async def authenticate(request: Request) -> Principal:
         raise ApiError(401, "missing API key", headers={"WWW-Authenticate": "Bearer"})
     cached, principal = cached_key(key)
     if not cached:
-        principal = await run_in_threadpool(_lookup, request.app.state.sessions, key)
+        principal = await run_in_threadpool(_lookup, app_state(request).sessions, key)
     if principal is None:
         raise ApiError(401, "unknown API key", headers={"WWW-Authenticate": "Bearer"})
     return principal
@@ -67,7 +47,7 @@ def _lookup(sessions: sessionmaker[Session], key: str) -> Principal | None:
 async def require_admin(principal: PrincipalDep) -> Principal:
     """Answer 403 unless the caller is an admin."""
     if principal.role != "admin":
-        raise ApiError(403, "admin key required")
+        raise Forbidden("admin key required")
     return principal
 
 
@@ -77,7 +57,7 @@ AdminDep = Annotated[Principal, Depends(require_admin)]
 async def site_reader(site_id: str, principal: PrincipalDep) -> Principal:
     """Answer 403 unless the caller may read ``site_id`` (admin, or its viewer)."""
     if not principal.can_read(site_id):
-        raise ApiError(403, f"this key may not read site '{site_id}'")
+        raise Forbidden(f"this key may not read site '{site_id}'")
     return principal
 
 
@@ -91,5 +71,5 @@ def websocket_principal(websocket: WebSocket) -> Principal | None:
         return None
     cached, principal = cached_key(key)
     if not cached:
-        principal = _lookup(websocket.app.state.sessions, key)
+        principal = _lookup(app_state(websocket).sessions, key)
     return principal
