@@ -8,16 +8,22 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from app.core.config import Settings
 
 
 def _settings(args: argparse.Namespace) -> Settings:
+    """Return the settings of flags over ``LOCUS_*`` env; exit naming any bad one."""
     overrides = {
         key: getattr(args, key)
         for key in ("host", "port", "database_url", "workers", "broker", "home")
         if getattr(args, key, None) is not None
     }
-    return Settings(**overrides)
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        raise SystemExit(f"locus: invalid settings: {exc}") from None
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

@@ -16,6 +16,7 @@ from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
 from app.core.errors import Unavailable
 from app.core.metrics import Metrics
+from app.keys.cache import KeyCache
 from app.radiomaps.jobs import RadioMapBuilds
 from app.sites.cache import SiteVersions
 from app.tracks.jobs import TrackFitter
@@ -31,6 +32,7 @@ class AppState:
     sessions: sessionmaker[Session]
     metrics: Metrics
     sites: SiteVersions
+    keys: KeyCache
     runtime: Runtime | None
     track_fits: TrackFitter
     radiomap_builds: RadioMapBuilds
@@ -50,13 +52,17 @@ class AppState:
             settings, sessions, runtime.hub.publish if runtime is not None else None
         )
         track_fits.start()
-        sites = SiteVersions(sessions)
+        sites = SiteVersions(sessions, ttl_s=settings.site_cache_ttl_s)
+        keys = KeyCache(
+            sessions, ttl_s=settings.key_cache_ttl_s, max_entries=settings.key_cache_size
+        )
         return cls(
             settings=settings,
             engine=engine,
             sessions=sessions,
             metrics=metrics,
             sites=sites,
+            keys=keys,
             runtime=runtime,
             track_fits=track_fits,
             radiomap_builds=RadioMapBuilds(settings, sessions, sites),

@@ -14,8 +14,6 @@ from app.ingest.schemas import IngestBatch, LocatorBatch
 from app.sites.cache import SiteVersions
 from app.workers.runtime import Outcome, Runtime
 
-WAIT_TIMEOUT_S = 60.0
-
 
 async def ingest_batch(
     *,
@@ -49,7 +47,7 @@ async def ingest_batch(
     )
     if future is None:
         return {"accepted": count - late, "late": late}
-    outcome = await _outcome(future, WAIT_TIMEOUT_S)
+    outcome = await _outcome(future, settings.ingest_wait_timeout_s)
     return {"accepted": outcome.accepted, "late": outcome.late, "positions": outcome.positions}
 
 
@@ -91,7 +89,7 @@ async def ingest_locator(
         futures.append(future)
     if not wait:
         return {"accepted": count - late, "late": late}
-    timeout_s = WAIT_TIMEOUT_S
+    timeout_s = settings.ingest_wait_timeout_s
     outcomes = [await _outcome(f, timeout_s) for f in futures if f is not None]
     positions = sorted((p for o in outcomes for p in o.positions), key=lambda p: p["t"])
     return {

@@ -5,12 +5,10 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import Depends, Request, WebSocket
-from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
 from app.core.errors import ApiError, Forbidden
 from app.core.security import Principal
-from app.keys.service import cached_key, resolve_key
 from app.state import app_state
 
 
@@ -28,20 +26,16 @@ async def authenticate(request: Request) -> Principal:
     key = bearer_key(request.headers.get("authorization"))
     if key is None:
         raise ApiError(401, "missing API key", headers={"WWW-Authenticate": "Bearer"})
-    cached, principal = cached_key(key)
+    keys = app_state(request).keys
+    cached, principal = keys.cached(key)
     if not cached:
-        principal = await run_in_threadpool(_lookup, app_state(request).sessions, key)
+        principal = await run_in_threadpool(keys.resolve, key)
     if principal is None:
         raise ApiError(401, "unknown API key", headers={"WWW-Authenticate": "Bearer"})
     return principal
 
 
 PrincipalDep = Annotated[Principal, Depends(authenticate)]
-
-
-def _lookup(sessions: sessionmaker[Session], key: str) -> Principal | None:
-    with sessions() as db:
-        return resolve_key(db=db, key=key)
 
 
 async def require_admin(principal: PrincipalDep) -> Principal:
@@ -69,7 +63,6 @@ def websocket_principal(websocket: WebSocket) -> Principal | None:
     key = bearer_key(websocket.headers.get("authorization"), websocket.query_params.get("key"))
     if key is None:
         return None
-    cached, principal = cached_key(key)
-    if not cached:
-        principal = _lookup(app_state(websocket).sessions, key)
-    return principal
+    keys = app_state(websocket).keys
+    cached, principal = keys.cached(key)
+    return principal if cached else keys.resolve(key)

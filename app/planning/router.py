@@ -43,6 +43,7 @@ async def accuracy(
         cell=cell,
         samples=samples,
         raster_cell=settings.raster_cell,
+        max_cells=settings.planning_max_cells,
     )
     if "image/png" in request.headers.get("accept", ""):
         png = await run_in_threadpool(

@@ -16,8 +16,6 @@ from app.geometry.raster import wall_segments
 from app.sites.assembly import assemble_site
 from app.sites.models import Site
 
-MAX_CELLS = 400_000
-
 
 def accuracy_map(
     *,
@@ -29,6 +27,7 @@ def accuracy_map(
     cell: float,
     samples: int,
     raster_cell: float,
+    max_cells: int,
 ) -> AccuracyMap:
     """Compute the floor's accuracy map; NotFound for an unknown floor, Invalid when the grid
     would be too large."""
@@ -37,8 +36,8 @@ def accuracy_map(
     index = loaded.floor_index[floor_id]
     xmin, ymin, xmax, ymax = loaded.model.floors[index].plan.bounds
     cells = np.ceil((xmax - xmin) / cell) * np.ceil((ymax - ymin) / cell)
-    if cells > MAX_CELLS:
-        raise Invalid(f"{int(cells)} cells at {cell} m; at most {MAX_CELLS}: use a larger cell")
+    if cells > max_cells:
+        raise Invalid(f"{int(cells)} cells at {cell} m; at most {max_cells}: use a larger cell")
     return floor_accuracy(loaded.model, index, tech, z=z, cell=cell, samples=samples)
 
 

@@ -17,9 +17,6 @@ from app.sites.cache import SiteVersions
 
 log = logging.getLogger(__name__)
 
-PROGRESS_STEP = 0.05
-"""An asynchronous job's progress is written when it moved at least this much."""
-
 
 class RadioMapBuilds:
     """Runs the builds of this process; lives as long as the app."""
@@ -55,6 +52,7 @@ class RadioMapBuilds:
                 sessions=self.sessions,
                 site_id=site_id,
                 raster_cell=self.settings.raster_cell,
+                folds=self.settings.radiomap_folds,
                 progress=progress,
             )
         # this node's ingest sees the new map version at once (other nodes within the cache TTL)
@@ -69,9 +67,10 @@ class RadioMapBuilds:
 
     async def _run(self, site_id: str, job_id: str) -> None:
         last = [0.0]
+        step = self.settings.radiomap_progress_step
 
         def progress(fraction: float) -> None:
-            if fraction - last[0] >= PROGRESS_STEP or fraction >= 1.0:
+            if fraction - last[0] >= step or fraction >= 1.0:
                 last[0] = fraction
                 service.update_job(sessions=self.sessions, job_id=job_id, progress=fraction)
 

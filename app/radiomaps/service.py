@@ -46,8 +46,6 @@ from app.surveys.service import count_surveys, survey_samples
 RADIO_MAP = RadioMapParams()
 CALIBRATION = CalibrationParams()
 WKNN = WknnParams()
-FOLDS = 5
-"""Cross-validation folds (whole walks are held out)."""
 
 Progress = Callable[[float], None]
 
@@ -150,9 +148,12 @@ def _r(value: float, digits: int = 3) -> float | None:
     return None if not np.isfinite(value) else round(float(value), digits)
 
 
-def compute_build(inputs: BuildInputs, *, progress: Progress | None = None) -> BuildResult:
+def compute_build(
+    inputs: BuildInputs, *, folds: int, progress: Progress | None = None
+) -> BuildResult:
     """Build every surveyed floor's radio map, calibrate every heard transmitter, and estimate
-    the maps' accuracy on held-out walks. Raises Conflict when no scan can be located."""
+    the maps' accuracy on held-out walks (``folds`` groups of whole walks held out in turn).
+    Raises Conflict when no scan can be located."""
     report = progress or (lambda _: None)
     site = inputs.site
     if not inputs.surveys:
@@ -199,7 +200,7 @@ def compute_build(inputs: BuildInputs, *, progress: Progress | None = None) -> B
         plans,
         RADIO_MAP,
         WKNN,
-        folds=FOLDS,
+        folds=folds,
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     accuracy: dict[str, Any] | None = None
@@ -305,6 +306,7 @@ def build_site(
     sessions: sessionmaker[Session],
     site_id: str,
     raster_cell: float,
+    folds: int,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Run a whole build (read, compute, store) and return the summary with its duration.
@@ -317,7 +319,7 @@ def build_site(
         if site is None:
             raise NotFound(f"site '{site_id}' not found")
         inputs = load_inputs(db=db, site=site, raster_cell=raster_cell)
-    result = compute_build(inputs, progress=progress)
+    result = compute_build(inputs, folds=folds, progress=progress)
     with session_scope(sessions) as db:
         site = db.get(Site, site_id)
         if site is None:
