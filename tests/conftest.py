@@ -161,7 +161,6 @@ def database_url(new_database: Any) -> str:
 def settings(database_url: str, tmp_path_factory: pytest.TempPathFactory) -> Settings:
     """Settings of the in-process app: one worker process, the shared test database."""
     return Settings(
-        environment="test",
         database_url=database_url,
         home=tmp_path_factory.mktemp("home"),
         workers=1,

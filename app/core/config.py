@@ -36,7 +36,6 @@ class Settings(BaseSettings):
         env_prefix="LOCUS_", extra="ignore", hide_input_in_errors=True
     )
 
-    environment: Literal["development", "production", "test"] = "development"
     home: Path = Field(
         default=Path("var"), description="Folder for the embedded database and other local state."
     )
