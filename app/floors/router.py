@@ -11,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 from app.core.errors import ApiError, TooLarge
 from app.core.schemas import FloorIdPath
 from app.floors import service
-from app.floors.models import Floor
+from app.floors.models import FloorRecord
 from app.floors.schemas import FloorSummary
 from app.keys.deps import AdminDep, SiteReaderDep
 from app.sites.deps import SiteDep
@@ -20,7 +20,7 @@ from app.state import SessionDep, SettingsDep
 router = APIRouter(prefix="/v1/sites/{site_id}/floors", tags=["floors"])
 
 
-def _summary(floor: Floor) -> FloorSummary:
+def _summary(floor: FloorRecord) -> FloorSummary:
     return FloorSummary(
         site_id=floor.site_id, floor_id=floor.floor_id, updated_at=floor.updated_at, **floor.summary
     )

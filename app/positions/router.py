@@ -10,14 +10,14 @@ from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from app.core.errors import Forbidden, NotFound
 from app.keys.deps import PrincipalDep, websocket_principal
 from app.positions import service
-from app.positions.models import Position as PositionRow
+from app.positions.models import PositionRecord
 from app.positions.schemas import Position, PositionPage
 from app.state import SessionDep, app_state
 
 router = APIRouter(prefix="/v1", tags=["positions"])
 
 
-def _message(row: PositionRow) -> Position:
+def _message(row: PositionRecord) -> Position:
     return Position(
         device_id=row.device_id,
         site_id=row.site_id,

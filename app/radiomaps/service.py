@@ -40,7 +40,7 @@ from app.sites.assembly import LoadedSite, assemble_site
 from app.sites.models import Site
 from app.sites.radio_ids import radio_id
 from app.sites.service import bump_map_version
-from app.surveys.models import Survey as SurveyRow
+from app.surveys.models import SurveyRecord
 from app.surveys.service import count_surveys, survey_samples
 
 RADIO_MAP = RadioMapParams()
@@ -91,7 +91,7 @@ def check_buildable(*, db: Session, site: Site) -> None:
         )
 
 
-def _survey_input(row: SurveyRow) -> SurveyInput:
+def _survey_input(row: SurveyRecord) -> SurveyInput:
     samples = survey_samples(row)
     wp = np.array([[w["t"], w["x"], w["y"]] for w in samples["waypoints"]], dtype=float)
     t: list[int] = []
@@ -120,7 +120,9 @@ def load_inputs(*, db: Session, site: Site, raster_cell: float) -> BuildInputs:
     loaded = assemble_site(db=db, site=site, raster_cell=raster_cell, with_radiomap=False)
     if not loaded.floor_ids:
         raise Conflict(f"site '{site.id}' has no floors", code="no_floors")
-    rows = db.scalars(select(SurveyRow).where(SurveyRow.site_id == site.id).order_by(SurveyRow.id))
+    rows = db.scalars(
+        select(SurveyRecord).where(SurveyRecord.site_id == site.id).order_by(SurveyRecord.id)
+    )
     surveys = tuple(_survey_input(r) for r in rows if r.floor_id in loaded.floor_index)
     return BuildInputs(site=loaded, surveys=surveys)
 

@@ -12,9 +12,9 @@ from app.sites.service import require_site
 from app.state import SessionDep
 
 
-def load_site(site_id: SiteIdPath, db: SessionDep) -> Site:
+def site_or_404(site_id: SiteIdPath, db: SessionDep) -> Site:
     """Return the path's site or answer 404."""
     return require_site(db=db, site_id=site_id)
 
 
-SiteDep = Annotated[Site, Depends(load_site)]
+SiteDep = Annotated[Site, Depends(site_or_404)]

@@ -6,8 +6,8 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from app.core.errors import NotFound
-from app.devices.models import DeviceState
-from app.positions.models import Position
+from app.devices.models import DeviceStateRecord
+from app.positions.models import PositionRecord
 from app.sites.models import Site
 from app.sites.schemas import SiteUpsert
 
@@ -49,8 +49,8 @@ def list_sites(*, db: Session, only: str | None, limit: int, offset: int) -> tup
 
 def delete_site(*, db: Session, site: Site) -> None:
     """Delete the site with its floors, surveys, positions and device states."""
-    db.execute(delete(Position).where(Position.site_id == site.id))
-    db.execute(delete(DeviceState).where(DeviceState.site_id == site.id))
+    db.execute(delete(PositionRecord).where(PositionRecord.site_id == site.id))
+    db.execute(delete(DeviceStateRecord).where(DeviceStateRecord.site_id == site.id))
     db.delete(site)
     db.flush()
 

@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.time import now_ms
-from app.positions.models import Position
+from app.positions.models import PositionRecord
 from app.tracks.fitting import run_fit
 from app.tracks.models import Track
 
@@ -99,5 +99,5 @@ class TrackFitter:
                 "method": "trackfit",
                 "computed_at": now_ms(),
             }
-            db.execute(insert(Position), [{k: v for k, v in position.items() if k != "type"}])
+            db.execute(insert(PositionRecord), [{k: v for k, v in position.items() if k != "type"}])
             return position
