@@ -8,30 +8,36 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from app.core.config import Settings
 
 
 def _settings(args: argparse.Namespace) -> Settings:
+    """Return the settings of flags over ``LOCUS_*`` env; exit naming any bad one."""
     overrides = {
         key: getattr(args, key)
         for key in ("host", "port", "database_url", "workers", "broker", "home")
         if getattr(args, key, None) is not None
     }
-    return Settings(**overrides)
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        raise SystemExit(f"locus: invalid settings: {exc}") from None
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Upgrade the schema, make sure an admin key exists, and serve the API with workers."""
     import uvicorn
 
-    from app.core.bootstrap import announce_admin_key, bootstrap_admin, prepare_database
-    from app.core.db import make_engine, make_sessionmaker
+    from app.core.db import make_engine, make_sessionmaker, upgrade_database
     from app.core.logging import configure_logging
+    from app.keys.bootstrap import announce_admin_key, bootstrap_admin
     from app.main import create_app
 
     configure_logging()
     settings = _settings(args)
-    prepare_database(settings)
+    upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     key = bootstrap_admin(sessions=make_sessionmaker(engine), settings=settings)
     engine.dispose()
@@ -54,9 +60,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app import demo
-    from app.core.bootstrap import bootstrap_admin, prepare_database
-    from app.core.db import make_engine, make_sessionmaker, session_scope
+    from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
     from app.core.logging import configure_logging
+    from app.keys.bootstrap import bootstrap_admin
     from app.keys.service import create_key
     from app.main import create_app
 
@@ -64,7 +70,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     settings = _settings(args)
     if args.home is None:
         settings = settings.model_copy(update={"home": settings.home / "demo"})
-    prepare_database(settings)
+    upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     sessions = make_sessionmaker(engine)
     bootstrap_admin(sessions=sessions, settings=settings)

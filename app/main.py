@@ -12,11 +12,8 @@ from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core.config import Settings, get_settings
-from app.core.db import make_engine, make_sessionmaker
 from app.core.errors import install_error_handlers
-from app.core.metrics import Metrics
 from app.core.openapi import install_openapi
-from app.core.state import AppState
 from app.floors.router import router as floors_router
 from app.ingest.router import router as ingest_router
 from app.keys.router import router as keys_router
@@ -24,12 +21,10 @@ from app.ops.router import router as ops_router
 from app.planning.router import router as planning_router
 from app.positions.router import router as positions_router
 from app.radiomaps.router import router as radiomaps_router
-from app.sites.cache import SiteVersions
 from app.sites.router import router as sites_router
+from app.state import AppState
 from app.surveys.router import router as surveys_router
 from app.tracks.router import router as tracks_router
-from app.tracks.service import TrackFitter
-from app.workers.runtime import Runtime
 
 WEB_DIR = Path(__file__).parent / "web"
 
@@ -69,26 +64,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        engine = make_engine(settings.resolved_database_url)
-        sessions = make_sessionmaker(engine)
-        metrics = Metrics()
-        runtime = None
-        if settings.worker_count > 0 or settings.broker != "memory":
-            runtime = Runtime(settings, metrics)
-            await runtime.start()
-        app.state.sessions = sessions
-        app.state.track_fitter = TrackFitter(settings, sessions)
-        app.state.track_fitter.start()
-        app.state.locus = AppState(
-            settings, engine, sessions, metrics, SiteVersions(sessions), runtime
-        )
+        state = await AppState.open(settings)
+        app.state.locus = state
         try:
             yield
         finally:
-            app.state.track_fitter.stop()
-            if runtime is not None:
-                await runtime.stop()
-            engine.dispose()
+            await state.close()
 
     app = FastAPI(
         title="Locus",

@@ -1,26 +1,26 @@
 """Every table, imported in one place so metadata and Alembic see them all."""
 
 from app.core.db import Base
-from app.devices.models import DeviceState
-from app.floors.models import Floor
+from app.devices.models import DeviceStateRecord
+from app.floors.models import FloorRecord
 from app.keys.models import ApiKey
-from app.positions.models import Position
+from app.positions.models import PositionRecord
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.sites.models import Site
-from app.surveys.models import Survey
+from app.surveys.models import SurveyRecord
 from app.tracks.models import Track
 
 __all__ = [
     "ApiKey",
     "Base",
     "CalibratedTransmitter",
-    "DeviceState",
-    "Floor",
-    "Position",
+    "DeviceStateRecord",
+    "FloorRecord",
+    "PositionRecord",
     "RadioMapBuild",
     "RadioMapFloor",
     "RadioMapJob",
     "Site",
-    "Survey",
+    "SurveyRecord",
     "Track",
 ]

@@ -19,9 +19,9 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from app.core.bootstrap import bootstrap_admin
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker, upgrade_database
+from app.keys.bootstrap import bootstrap_admin
 from app.main import create_app
 
 ADMIN_KEY = "lk_test_admin_key"
@@ -161,7 +161,6 @@ def database_url(new_database: Any) -> str:
 def settings(database_url: str, tmp_path_factory: pytest.TempPathFactory) -> Settings:
     """Settings of the in-process app: one worker process, the shared test database."""
     return Settings(
-        environment="test",
         database_url=database_url,
         home=tmp_path_factory.mktemp("home"),
         workers=1,

@@ -1,4 +1,7 @@
-"""Service settings: one pydantic-settings object, read from flags and ``LOCUS_*`` env."""
+"""Service settings: one pydantic-settings object, read from flags and ``LOCUS_*`` env.
+
+Every operational limit of a node lives here, with its range and what it is for.
+"""
 
 from __future__ import annotations
 
@@ -9,91 +12,223 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
+
+DATABASE_URL_FORMS = (
+    "sqlite:///path/to/locus.db or postgresql+psycopg://user:password@host:5432/db "
+    "(empty: an embedded SQLite file under home)"
+)
+DATABASE_DRIVERS = {"sqlite": ("", "pysqlite"), "postgresql": ("psycopg",)}
+"""Database backends Locus runs on, with the drivers it ships ('' = the backend's default)."""
+BROKER_FORMS = "'memory' (embedded) or a Redis URL such as redis://host:6379/0"
+REDIS_SCHEMES = ("redis", "rediss", "unix")
+
+MIB = 1 << 20
+DAY_MS = 24 * 3600 * 1000
 
 
 class Settings(BaseSettings):
     """Everything configurable about a Locus node, with documented defaults."""
 
-    model_config = SettingsConfigDict(env_prefix="LOCUS_", extra="ignore")
+    # URLs and keys carry passwords: errors name the setting, never echo its value
+    model_config = SettingsConfigDict(
+        env_prefix="LOCUS_", extra="ignore", hide_input_in_errors=True
+    )
 
-    environment: Literal["development", "production", "test"] = "development"
     home: Path = Field(
         default=Path("var"), description="Folder for the embedded database and other local state."
     )
     database_url: str = Field(
-        default="", description="SQLAlchemy URL; empty means an embedded SQLite file under home."
+        default="", description=f"SQLAlchemy URL of the database: {DATABASE_URL_FORMS}."
     )
     admin_key: str | None = Field(
         default=None, description="Bootstrap admin key; generated and printed once when absent."
     )
-    host: str = "127.0.0.1"
-    port: int = 8000
+    host: str = Field(default="127.0.0.1", description="Address the API listens on.")
+    port: int = Field(default=8000, ge=0, le=65535, description="Port the API listens on.")
     workers: int | None = Field(
-        default=None, ge=0, description="Filter worker processes; None = one per core."
+        default=None, ge=0, le=1024, description="Filter worker processes; None = one per core."
     )
-    broker: str = Field(default="memory", description="'memory' or a redis:// URL.")
+    broker: str = Field(
+        default="memory", description=f"Where batches go to the workers: {BROKER_FORMS}."
+    )
     shards: int = Field(
-        default=16, ge=1, description="Streams (shards) on the Redis broker; fixed per deployment."
+        default=16,
+        ge=1,
+        le=4096,
+        description="Streams (shards) on the Redis broker; fixed per deployment.",
     )
     stream_maxlen: int = Field(
-        default=200_000, description="Approximate cap of each shard stream on Redis."
+        default=200_000,
+        ge=1,
+        le=10**9,
+        description="Approximate cap of each shard stream on Redis.",
     )
     lease_s: float = Field(
-        default=3.0, gt=0, description="A worker that stops renewing loses its shards after this."
+        default=3.0,
+        gt=0,
+        le=300,
+        description="A worker that stops renewing loses its shards after this.",
     )
     access_log: bool = Field(default=False, description="Log every HTTP request.")
 
     # Ingest limits (API.md: 1 MiB body, 10,000 samples).
-    max_body_bytes: int = 1 << 20
-    max_samples: int = 10_000
+    max_body_bytes: int = Field(
+        default=MIB, ge=1, le=1024 * MIB, description="Largest ingest body (bytes)."
+    )
+    max_samples: int = Field(
+        default=10_000, ge=1, le=10_000_000, description="Most samples in one ingest batch."
+    )
     max_future_ms: int = Field(
-        default=24 * 3600 * 1000, description="Reject samples this far ahead of the server clock."
+        default=DAY_MS,
+        ge=0,
+        le=365 * DAY_MS,
+        description="Reject samples this far ahead of the server clock.",
     )
     max_inflight_batches: int = Field(
-        default=16, description="Queued, unprocessed batches one device may have before 429."
+        default=16,
+        ge=1,
+        le=1_000_000,
+        description="Queued, unprocessed batches one device may have before 429.",
     )
     shard_backlog: int = Field(
-        default=5000, description="Queued batches per shard before ingest answers 429."
+        default=5000,
+        ge=1,
+        le=10_000_000,
+        description="Queued batches per shard before ingest answers 429.",
     )
     overload_policy: Literal["reject", "latest"] = Field(
         default="reject",
         description="Over a shard's backlog: 'reject' answers 429; 'latest' accepts and keeps "
         "only each device's newest batch until the worker catches up (older ones counted dropped).",
     )
-    floor_map_max_bytes: int = 32 << 20
-    survey_max_bytes: int = 256 << 20
+    ingest_wait_timeout_s: float = Field(
+        default=60.0,
+        gt=0,
+        le=3600,
+        description="How long ``?wait=true`` waits for a batch's processing before answering "
+        "503 (the batch stays queued).",
+    )
+    floor_map_max_bytes: int = Field(
+        default=32 * MIB, ge=1, le=1024 * MIB, description="Largest floor-map upload (bytes)."
+    )
+    survey_max_bytes: int = Field(
+        default=256 * MIB, ge=1, le=4096 * MIB, description="Largest survey upload (bytes)."
+    )
+
+    # Caches of the request path.
+    site_cache_ttl_s: float = Field(
+        default=2.0,
+        ge=0,
+        le=300,
+        description="Ingest re-reads a site's map version at most this often: how long another "
+        "node's map change may take to reach this node's batches.",
+    )
+    key_cache_ttl_s: float = Field(
+        default=30.0,
+        ge=0,
+        le=3600,
+        description="A resolved API key is trusted this long without the database: how long a "
+        "deleted key may still work.",
+    )
+    key_cache_size: int = Field(
+        default=10_000,
+        ge=1,
+        le=10_000_000,
+        description="Keys remembered at most; the cache starts afresh beyond this.",
+    )
 
     # Workers.
     reorder_window_ms: int = Field(
-        default=2000, description="Samples are held this long (measurement time) to be ordered."
+        default=2000,
+        ge=0,
+        le=600_000,
+        description="Samples are held this long (measurement time) to be ordered.",
     )
     flush_after_s: float = Field(
         default=2.5,
+        ge=0,
+        le=3600,
         description="Wall seconds of silence after which a device's buffer is flushed: longer "
         "than the usual 1 s upload period with its jitter, so a device that keeps uploading "
         "is never flushed between two batches.",
     )
     idle_evict_s: float = Field(
         default=300.0,
+        gt=0,
+        le=7 * 24 * 3600,
         description="Wall seconds of silence after which a device is snapshotted and evicted.",
     )
     snapshot_every_ms: int = Field(
-        default=10_000, description="Measurement time between periodic device snapshots."
+        default=10_000,
+        ge=0,
+        le=DAY_MS,
+        description="Measurement time between periodic device snapshots.",
     )
-    raster_cell: float = Field(default=0.25, gt=0, description="Floor raster cell (m).")
+    raster_cell: float = Field(default=0.25, gt=0, le=10, description="Floor raster cell (m).")
+
+    # Radio-map builds.
+    radiomap_folds: int = Field(
+        default=5,
+        ge=2,
+        le=100,
+        description="Folds of the held-out accuracy estimate of a build (whole walks held out).",
+    )
+    radiomap_progress_step: float = Field(
+        default=0.05,
+        gt=0,
+        le=1,
+        description="An asynchronous build's progress is written when it moved this much.",
+    )
+
+    # Planning.
+    planning_max_cells: int = Field(
+        default=400_000,
+        ge=1,
+        le=100_000_000,
+        description="Largest accuracy-map grid computed for one request (cells).",
+    )
 
     # Track fitting.
-    trackfit_processes: int = Field(default=1, ge=1, description="Processes fitting tracks.")
-    trackfit_time_limit_s: float = Field(default=30.0, gt=0, description="Per-fit time limit.")
+    trackfit_processes: int = Field(
+        default=1, ge=1, le=256, description="Processes fitting tracks."
+    )
+    trackfit_time_limit_s: float = Field(
+        default=30.0, gt=0, le=3600, description="Per-fit time limit."
+    )
 
     # Positions fan-out.
-    ws_queue_size: int = Field(default=1000, description="Per-subscriber queue before drops.")
+    ws_queue_size: int = Field(
+        default=1000, ge=1, le=1_000_000, description="Per-subscriber queue before drops."
+    )
 
     @field_validator("database_url")
     @classmethod
-    def _check_url(cls, value: str) -> str:
-        if value and "://" not in value:
-            raise ValueError("database_url must be a SQLAlchemy URL such as sqlite:///file.db")
+    def _check_database_url(cls, value: str) -> str:
+        if not value:
+            return value
+        try:
+            url = make_url(value)
+        except ArgumentError:
+            raise ValueError(
+                f"database_url is not a database URL; use {DATABASE_URL_FORMS}"
+            ) from None
+        drivers = DATABASE_DRIVERS.get(url.get_backend_name())
+        if drivers is None or (url.drivername.partition("+")[2] not in drivers):
+            raise ValueError(
+                f"database_url has the unsupported scheme {url.drivername!r}; "
+                f"use {DATABASE_URL_FORMS}"
+            )
+        return value
+
+    @field_validator("broker")
+    @classmethod
+    def _check_broker(cls, value: str) -> str:
+        scheme, separator, _ = value.partition("://")
+        if value != "memory" and not (separator and scheme in REDIS_SCHEMES):
+            given = f"a {scheme!r} URL" if separator else "neither"
+            raise ValueError(f"broker must be {BROKER_FORMS}; it is {given}")
         return value
 
     @property

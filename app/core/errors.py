@@ -51,6 +51,7 @@ class DomainError(Exception):
     """A failure named by the domain, not by HTTP; the handlers below map each kind to a status.
 
     Services and workers raise these; only ``install_error_handlers`` knows status codes.
+    ``code`` names a more specific failure than the kind's own code (e.g. ``no_surveys``).
     """
 
     status = 500
@@ -60,11 +61,14 @@ class DomainError(Exception):
         self,
         message: str,
         *,
+        code: str | None = None,
         details: list[Any] | None = None,
         retry_after_s: float | None = None,
     ) -> None:
         super().__init__(message)
         self.message = message
+        if code is not None:
+            self.code = code
         self.details = details or []
         self.retry_after_s = retry_after_s
 

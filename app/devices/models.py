@@ -11,7 +11,7 @@ from app.core.db import Base, UtcDateTime
 from app.core.time import utcnow
 
 
-class DeviceState(Base):
+class DeviceStateRecord(Base):
     """The latest serialised filter state of one device."""
 
     __tablename__ = "device_states"

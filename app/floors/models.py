@@ -11,7 +11,7 @@ from app.core.db import Base, UtcDateTime
 from app.core.time import utcnow
 
 
-class Floor(Base):
+class FloorRecord(Base):
     """One floor of a site with its map as uploaded and the summary computed from it."""
 
     __tablename__ = "floors"

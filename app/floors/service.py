@@ -8,29 +8,47 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.floors.models import Floor
-from app.geometry.floormap import parse_floor_map, summarize
+from app.core.errors import Invalid, NotFound
+from app.floors.models import FloorRecord
+from app.geometry.floormap import FloorMapError, parse_floor_map, summarize
 from app.geometry.raster import floor_plan
 from app.sites.models import Site
 from app.sites.service import bump_map_version
 
 
-def get_floor(*, db: Session, site_id: str, floor_id: str) -> Floor | None:
+def get_floor(*, db: Session, site_id: str, floor_id: str) -> FloorRecord | None:
     """Return the floor or None."""
-    return db.get(Floor, (site_id, floor_id))
+    return db.get(FloorRecord, (site_id, floor_id))
 
 
-def list_floors(*, db: Session, site_id: str) -> list[Floor]:
+def require_floor(*, db: Session, site_id: str, floor_id: str) -> FloorRecord:
+    """Return the floor or raise NotFound."""
+    floor = get_floor(db=db, site_id=site_id, floor_id=floor_id)
+    if floor is None:
+        raise NotFound(f"floor '{floor_id}' not found in site '{site_id}'")
+    return floor
+
+
+def list_floors(*, db: Session, site_id: str) -> list[FloorRecord]:
     """Return the site's floors ordered by level."""
-    rows = db.scalars(select(Floor).where(Floor.site_id == site_id).order_by(Floor.level))
+    rows = db.scalars(
+        select(FloorRecord).where(FloorRecord.site_id == site_id).order_by(FloorRecord.level)
+    )
     return list(rows)
 
 
 def put_floor(
     *, db: Session, site: Site, floor_id: str, doc: dict[str, Any], raster_cell: float
-) -> Floor:
-    """Validate ``doc`` (raises FloorMapError listing every problem), rasterise and store it."""
-    fmap = parse_floor_map(doc)
+) -> FloorRecord:
+    """Validate ``doc`` (Invalid listing every problem), rasterise and store it."""
+    try:
+        fmap = parse_floor_map(doc)
+    except FloorMapError as exc:
+        raise Invalid(
+            f"floor map rejected: {len(exc.problems)} problem(s)",
+            code="invalid_floor_map",
+            details=[p.as_dict() for p in exc.problems],
+        ) from exc
     plan = floor_plan(fmap, cell=raster_cell)
     summary = summarize(fmap) | {
         "raster": {
@@ -41,7 +59,7 @@ def put_floor(
     }
     floor = get_floor(db=db, site_id=site.id, floor_id=floor_id)
     if floor is None:
-        floor = Floor(site_id=site.id, floor_id=floor_id)
+        floor = FloorRecord(site_id=site.id, floor_id=floor_id)
         db.add(floor)
     floor.level = fmap.level
     floor.height = fmap.height
@@ -53,7 +71,7 @@ def put_floor(
     return floor
 
 
-def delete_floor(*, db: Session, site: Site, floor: Floor) -> None:
+def delete_floor(*, db: Session, site: Site, floor: FloorRecord) -> None:
     """Remove a floor from the site."""
     db.delete(floor)
     bump_map_version(db=db, site=site)

@@ -9,12 +9,12 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 
-from app.core.deps import PrincipalDep, websocket_principal
-from app.core.errors import ApiError, error_body, validation_details
+from app.core.errors import ApiError, DomainError, Invalid, TooLarge, error_body, validation_details
 from app.core.openapi import json_body
-from app.core.state import RuntimeDep, StateDep
-from app.ingest import service
+from app.ingest import flows
 from app.ingest.schemas import IngestAccepted, IngestBatch, IngestProcessed, LocatorBatch
+from app.keys.deps import PrincipalDep, websocket_principal
+from app.state import RuntimeDep, StateDep, app_state
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
 M = TypeVar("M", bound=BaseModel)
@@ -23,12 +23,12 @@ M = TypeVar("M", bound=BaseModel)
 async def _read_body(request: Request, limit: int) -> bytes:
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise ApiError(413, f"body larger than {limit} bytes")
+        raise TooLarge(f"body larger than {limit} bytes")
     body = bytearray()
     async for chunk in request.stream():
         body.extend(chunk)
         if len(body) > limit:
-            raise ApiError(413, f"body larger than {limit} bytes")
+            raise TooLarge(f"body larger than {limit} bytes")
     return bytes(body)
 
 
@@ -36,10 +36,8 @@ def _parse(model: type[M], raw: bytes | str) -> M:
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:
-        raise ApiError(
-            422,
-            "request failed validation",
-            details=validation_details(exc.errors(include_url=False)),
+        raise Invalid(
+            "request failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
 
 
@@ -63,7 +61,7 @@ async def ingest(
     """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
     raw = await _read_body(request, state.settings.max_body_bytes)
     batch = _parse(IngestBatch, raw)
-    result = await service.ingest_batch(
+    result = await flows.ingest_batch(
         batch=batch,
         principal=principal,
         settings=state.settings,
@@ -90,7 +88,7 @@ async def ingest_locator(
     """Accept a locator's sightings of tags; each goes to its tag's filter."""
     raw = await _read_body(request, state.settings.max_body_bytes)
     batch = _parse(LocatorBatch, raw)
-    result = await service.ingest_locator(
+    result = await flows.ingest_locator(
         batch=batch,
         principal=principal,
         settings=state.settings,
@@ -109,7 +107,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
     if principal is None:
         await websocket.close(code=1008, reason="missing or unknown API key")
         return
-    state = websocket.app.state.locus
+    state = app_state(websocket)
     if state.runtime is None:
         await websocket.close(code=1011, reason="this node runs no filter workers")
         return
@@ -122,7 +120,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                 continue
             try:
                 batch = _parse(IngestBatch, raw)
-                result = await service.ingest_batch(
+                result = await flows.ingest_batch(
                     batch=batch,
                     principal=principal,
                     settings=state.settings,
@@ -132,7 +130,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                 )
                 state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
                 await websocket.send_text(json.dumps(result))
-            except ApiError as exc:
+            except (ApiError, DomainError) as exc:
                 await websocket.send_json(
                     error_body(exc.code, exc.message, exc.details) | {"status": exc.status}
                 )

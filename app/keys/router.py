@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.core.deps import AdminDep, PrincipalDep, SessionDep
-from app.core.errors import ApiError
 from app.keys import service
+from app.keys.deps import AdminDep, PrincipalDep
 from app.keys.schemas import KeyCreate, KeyCreated, KeyRead
-from app.sites.service import get_site
+from app.sites.service import require_site
+from app.state import SessionDep
 
 router = APIRouter(prefix="/v1/keys", tags=["keys"])
 
@@ -22,8 +22,8 @@ async def who_am_i(principal: PrincipalDep) -> KeyRead:
 @router.post("", response_model=KeyCreated, status_code=201)
 def create_key(_: AdminDep, body: KeyCreate, db: SessionDep) -> KeyCreated:
     """Create a key; the key itself is returned only in this answer."""
-    if body.site_id is not None and get_site(db=db, site_id=body.site_id) is None:
-        raise ApiError(404, f"site '{body.site_id}' not found")
+    if body.site_id is not None:
+        require_site(db=db, site_id=body.site_id)
     key = service.create_key(db=db, role=body.role, site_id=body.site_id, label=body.label)
     db.commit()
     return KeyCreated(key=key, role=body.role, site_id=body.site_id, label=body.label)

@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
-import time
-
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.security import Principal, Role, hash_key, new_key
 from app.keys.models import ApiKey
-
-_CACHE_TTL_S = 30.0
-_cache: dict[str, tuple[float, Principal | None]] = {}
 
 
 def create_key(*, db: Session, role: Role, site_id: str | None, label: str | None) -> str:
@@ -37,21 +32,7 @@ def has_admin(*, db: Session) -> bool:
     return db.scalar(select(ApiKey.id).where(ApiKey.role == "admin").limit(1)) is not None
 
 
-def cached_key(key: str) -> tuple[bool, Principal | None]:
-    """Return (cached?, principal or None for a key known to be unknown) without the database."""
-    hit = _cache.get(hash_key(key))
-    if hit is not None and time.monotonic() - hit[0] < _CACHE_TTL_S:
-        return True, hit[1]
-    return False, None
-
-
 def resolve_key(*, db: Session, key: str) -> Principal | None:
-    """Return the principal of a key, or None if unknown, and cache it briefly."""
-    digest = hash_key(key)
-    now = time.monotonic()
-    row = db.scalar(select(ApiKey).where(ApiKey.key_hash == digest))
-    principal = Principal(role=row.role, site_id=row.site_id) if row else None  # type: ignore[arg-type]
-    if len(_cache) > 10_000:
-        _cache.clear()
-    _cache[digest] = (now, principal)
-    return principal
+    """Return the principal of a key, or None if unknown."""
+    row = db.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key)))
+    return Principal(role=row.role, site_id=row.site_id) if row else None  # type: ignore[arg-type]

@@ -7,8 +7,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 from sqlalchemy import text
 
-from app.core.errors import ApiError
-from app.core.state import StateDep
+from app.core.errors import Unavailable
+from app.state import StateDep
 
 router = APIRouter(tags=["operations"])
 
@@ -29,16 +29,31 @@ def healthz() -> Health:
 
 @router.get("/readyz", response_model=Health)
 def readyz(state: StateDep) -> Health:
-    """Answer 200 when the database answers and every worker is alive, else 503."""
+    """Answer 200 when the database answers and workers process this node's ingest, else 503
+    with the reasons: a node without workers of its own or a broker to reach others (the
+    embedded broker with ``--workers 0``) serves ingest it can never process."""
     try:
         with state.engine.connect() as conn:
             conn.execute(text("SELECT 1"))
         database = True
     except Exception:
         database = False
-    workers = state.runtime.broker.healthy() if state.runtime is not None else True
-    if not (database and workers):
-        raise ApiError(503, "not ready", details=[{"database": database, "workers": workers}])
+    reasons = [] if database else ["the database does not answer"]
+    if state.runtime is None:
+        workers = False
+        reasons.append(
+            "this node runs no filter workers and reaches none (embedded broker, --workers 0): "
+            "it would accept ingest it cannot process"
+        )
+    else:
+        workers = state.runtime.broker.healthy()
+        if not workers:
+            reasons.append("a shard has no live filter worker, or the broker does not answer")
+    if reasons:
+        raise Unavailable(
+            "not ready",
+            details=[{"database": database, "workers": workers, "reasons": reasons}],
+        )
     return Health(status="ready", database=database, workers=workers)
 
 

@@ -7,12 +7,11 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from app.core.deps import SessionDep, SettingsDep, SiteReaderDep
-from app.core.errors import ApiError
 from app.core.schemas import FloorIdPath
-from app.floors.service import get_floor
+from app.keys.deps import SiteReaderDep
 from app.planning import service
 from app.sites.deps import SiteDep
+from app.state import SessionDep, SettingsDep
 
 router = APIRouter(prefix="/v1/sites/{site_id}/floors/{floor_id}", tags=["planning"])
 
@@ -34,22 +33,18 @@ async def accuracy(
     samples: Annotated[int, Query(ge=1, le=10_000)] = 50,
 ) -> Any:
     """Standard deviations a least-squares fix would have at each cell centre at height z."""
-    if get_floor(db=db, site_id=site.id, floor_id=floor_id) is None:
-        raise ApiError(404, f"floor '{floor_id}' not found in site '{site.id}'")
-    try:
-        result = await run_in_threadpool(
-            service.accuracy_map,
-            db=db,
-            site=site,
-            floor_id=floor_id,
-            tech=tech,
-            z=z,
-            cell=cell,
-            samples=samples,
-            raster_cell=settings.raster_cell,
-        )
-    except ValueError as exc:
-        raise ApiError(422, str(exc)) from exc
+    result = await run_in_threadpool(
+        service.accuracy_map,
+        db=db,
+        site=site,
+        floor_id=floor_id,
+        tech=tech,
+        z=z,
+        cell=cell,
+        samples=samples,
+        raster_cell=settings.raster_cell,
+        max_cells=settings.planning_max_cells,
+    )
     if "image/png" in request.headers.get("accept", ""):
         png = await run_in_threadpool(
             service.render_png, db=db, site=site, floor_id=floor_id, result=result, tech=tech

@@ -8,14 +8,13 @@ from typing import Literal
 import numpy as np
 from sqlalchemy.orm import Session
 
+from app.core.errors import Invalid
 from app.engine.accuracy_map import AccuracyMap, floor_accuracy
-from app.floors.service import get_floor
+from app.floors.service import require_floor
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import wall_segments
+from app.sites.assembly import assemble_site
 from app.sites.models import Site
-from app.workers.sites import load_site
-
-MAX_CELLS = 400_000
 
 
 def accuracy_map(
@@ -28,14 +27,17 @@ def accuracy_map(
     cell: float,
     samples: int,
     raster_cell: float,
+    max_cells: int,
 ) -> AccuracyMap:
-    """Compute the floor's accuracy map; ValueError when the grid would be too large."""
-    loaded = load_site(db=db, site=site, raster_cell=raster_cell)
+    """Compute the floor's accuracy map; NotFound for an unknown floor, Invalid when the grid
+    would be too large."""
+    require_floor(db=db, site_id=site.id, floor_id=floor_id)
+    loaded = assemble_site(db=db, site=site, raster_cell=raster_cell)
     index = loaded.floor_index[floor_id]
     xmin, ymin, xmax, ymax = loaded.model.floors[index].plan.bounds
     cells = np.ceil((xmax - xmin) / cell) * np.ceil((ymax - ymin) / cell)
-    if cells > MAX_CELLS:
-        raise ValueError(f"{int(cells)} cells at {cell} m; at most {MAX_CELLS}: use a larger cell")
+    if cells > max_cells:
+        raise Invalid(f"{int(cells)} cells at {cell} m; at most {max_cells}: use a larger cell")
     return floor_accuracy(loaded.model, index, tech, z=z, cell=cell, samples=samples)
 
 
@@ -46,8 +48,7 @@ def render_png(*, db: Session, site: Site, floor_id: str, result: AccuracyMap, t
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    floor = get_floor(db=db, site_id=site.id, floor_id=floor_id)
-    assert floor is not None
+    floor = require_floor(db=db, site_id=site.id, floor_id=floor_id)
     fmap = parse_floor_map(floor.geojson)
     horizontal = np.hypot(result.sigma_x, result.sigma_y)
     ny, nx = result.shape

@@ -8,7 +8,7 @@ from sqlalchemy.orm import Mapped, mapped_column
 from app.core.db import Base
 
 
-class Position(Base):
+class PositionRecord(Base):
     """One emitted position of a device at measurement time ``t`` (ms)."""
 
     __tablename__ = "positions"

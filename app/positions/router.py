@@ -7,16 +7,17 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 
-from app.core.deps import PrincipalDep, SessionDep, websocket_principal
-from app.core.errors import ApiError
+from app.core.errors import Forbidden, NotFound
+from app.keys.deps import PrincipalDep, websocket_principal
 from app.positions import service
-from app.positions.models import Position as PositionRow
+from app.positions.models import PositionRecord
 from app.positions.schemas import Position, PositionPage
+from app.state import SessionDep, app_state
 
 router = APIRouter(prefix="/v1", tags=["positions"])
 
 
-def _message(row: PositionRow) -> Position:
+def _message(row: PositionRecord) -> Position:
     return Position(
         device_id=row.device_id,
         site_id=row.site_id,
@@ -39,8 +40,8 @@ def latest_position(principal: PrincipalDep, device_id: str, db: SessionDep) -> 
     row = service.latest(db=db, device_id=device_id)
     if row is None or not principal.can_read(row.site_id):
         if row is not None:
-            raise ApiError(403, f"this key may not read site '{row.site_id}'")
-        raise ApiError(404, f"no position for device '{device_id}'")
+            raise Forbidden(f"this key may not read site '{row.site_id}'")
+        raise NotFound(f"no position for device '{device_id}'")
     return _message(row)
 
 
@@ -56,7 +57,7 @@ def position_history(
     """Return the device's positions in ``[from, to]``, ascending ``t``, a page at a time."""
     site_id = service.device_site(db=db, device_id=device_id)
     if site_id is not None and not principal.can_read(site_id):
-        raise ApiError(403, f"this key may not read site '{site_id}'")
+        raise Forbidden(f"this key may not read site '{site_id}'")
     rows = service.history(db=db, device_id=device_id, t_from=t_from, t_to=t_to, limit=limit + 1)
     more = len(rows) > limit
     rows = rows[:limit]
@@ -87,7 +88,7 @@ async def position_stream(
     if principal.role != "admin" and site_id is None:
         await websocket.close(code=1008, reason="site_id is required")
         return
-    runtime = websocket.app.state.locus.runtime
+    runtime = app_state(websocket).runtime
     if runtime is None:
         await websocket.close(code=1011, reason="this node runs no filter workers")
         return

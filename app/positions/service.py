@@ -5,25 +5,25 @@ from __future__ import annotations
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.positions.models import Position
+from app.positions.models import PositionRecord
 
 
-def latest(*, db: Session, device_id: str) -> Position | None:
+def latest(*, db: Session, device_id: str) -> PositionRecord | None:
     """Return the device's position with the greatest measurement time."""
-    query = select(Position).where(Position.device_id == device_id)
-    return db.scalar(query.order_by(Position.t.desc(), Position.id.desc()).limit(1))
+    query = select(PositionRecord).where(PositionRecord.device_id == device_id)
+    return db.scalar(query.order_by(PositionRecord.t.desc(), PositionRecord.id.desc()).limit(1))
 
 
 def history(
     *, db: Session, device_id: str, t_from: int | None, t_to: int | None, limit: int
-) -> list[Position]:
+) -> list[PositionRecord]:
     """Return up to ``limit`` positions with ``t_from <= t <= t_to``, ascending t."""
-    query = select(Position).where(Position.device_id == device_id)
+    query = select(PositionRecord).where(PositionRecord.device_id == device_id)
     if t_from is not None:
-        query = query.where(Position.t >= t_from)
+        query = query.where(PositionRecord.t >= t_from)
     if t_to is not None:
-        query = query.where(Position.t <= t_to)
-    return list(db.scalars(query.order_by(Position.t, Position.id).limit(limit)))
+        query = query.where(PositionRecord.t <= t_to)
+    return list(db.scalars(query.order_by(PositionRecord.t, PositionRecord.id).limit(limit)))
 
 
 def device_site(*, db: Session, device_id: str) -> str | None:

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.db import session_scope
-from app.core.errors import ApiError
+from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import cross_validate
 from app.engine.radiomap import (
@@ -36,18 +36,16 @@ from app.engine.samples import RssiReadings
 from app.engine.wknn import WknnParams
 from app.radiomaps.codec import encode_map
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
+from app.sites.assembly import LoadedSite, assemble_site
 from app.sites.models import Site
+from app.sites.radio_ids import radio_id
 from app.sites.service import bump_map_version
-from app.surveys.models import Survey as SurveyRow
-from app.surveys.service import survey_samples
-from app.workers.convert import radio_id
-from app.workers.sites import LoadedSite, load_site
+from app.surveys.models import SurveyRecord
+from app.surveys.service import count_surveys, survey_samples
 
 RADIO_MAP = RadioMapParams()
 CALIBRATION = CalibrationParams()
 WKNN = WknnParams()
-FOLDS = 5
-"""Cross-validation folds (whole walks are held out)."""
 
 Progress = Callable[[float], None]
 
@@ -83,23 +81,17 @@ class BuildResult:
     summary: dict[str, Any]
 
 
-def count_surveys(*, db: Session, site_id: str) -> int:
-    """Return the number of surveys stored for the site."""
-    return db.scalar(select(func.count()).where(SurveyRow.site_id == site_id)) or 0
-
-
 def check_buildable(*, db: Session, site: Site) -> None:
-    """Answer 409 when the site has nothing to build from (no floors or no surveys)."""
+    """Raise Conflict when the site has no surveys to build from."""
     if count_surveys(db=db, site_id=site.id) == 0:
-        raise ApiError(
-            409,
+        raise Conflict(
             f"site '{site.id}' has no surveys: upload survey walks "
             f"(POST /v1/sites/{site.id}/surveys) before building its radio map",
             code="no_surveys",
         )
 
 
-def _survey_input(row: SurveyRow) -> SurveyInput:
+def _survey_input(row: SurveyRecord) -> SurveyInput:
     samples = survey_samples(row)
     wp = np.array([[w["t"], w["x"], w["y"]] for w in samples["waypoints"]], dtype=float)
     t: list[int] = []
@@ -125,10 +117,12 @@ def _survey_input(row: SurveyRow) -> SurveyInput:
 def load_inputs(*, db: Session, site: Site, raster_cell: float) -> BuildInputs:
     """Read the site as its floor maps give it (no earlier build) and its surveys, by id."""
     check_buildable(db=db, site=site)
-    loaded = load_site(db=db, site=site, raster_cell=raster_cell, with_radiomap=False)
+    loaded = assemble_site(db=db, site=site, raster_cell=raster_cell, with_radiomap=False)
     if not loaded.floor_ids:
-        raise ApiError(409, f"site '{site.id}' has no floors", code="no_floors")
-    rows = db.scalars(select(SurveyRow).where(SurveyRow.site_id == site.id).order_by(SurveyRow.id))
+        raise Conflict(f"site '{site.id}' has no floors", code="no_floors")
+    rows = db.scalars(
+        select(SurveyRecord).where(SurveyRecord.site_id == site.id).order_by(SurveyRecord.id)
+    )
     surveys = tuple(_survey_input(r) for r in rows if r.floor_id in loaded.floor_index)
     return BuildInputs(site=loaded, surveys=surveys)
 
@@ -156,17 +150,19 @@ def _r(value: float, digits: int = 3) -> float | None:
     return None if not np.isfinite(value) else round(float(value), digits)
 
 
-def compute_build(inputs: BuildInputs, *, progress: Progress | None = None) -> BuildResult:
+def compute_build(
+    inputs: BuildInputs, *, folds: int, progress: Progress | None = None
+) -> BuildResult:
     """Build every surveyed floor's radio map, calibrate every heard transmitter, and estimate
-    the maps' accuracy on held-out walks. Raises ApiError 409 when no scan can be located."""
+    the maps' accuracy on held-out walks (``folds`` groups of whole walks held out in turn).
+    Raises Conflict when no scan can be located."""
     report = progress or (lambda _: None)
     site = inputs.site
     if not inputs.surveys:
-        raise ApiError(409, f"site '{site.site_id}' has no surveys on its current floors")
+        raise Conflict(f"site '{site.site_id}' has no surveys on its current floors")
     survey, tx_ids, _ = _located_survey(inputs)
     if survey.n_scans == 0 or survey.reading_rssi.size == 0:
-        raise ApiError(
-            409,
+        raise Conflict(
             "the surveys hold no WiFi scan within their waypoints' time span",
             code="no_scans",
         )
@@ -206,7 +202,7 @@ def compute_build(inputs: BuildInputs, *, progress: Progress | None = None) -> B
         plans,
         RADIO_MAP,
         WKNN,
-        folds=FOLDS,
+        folds=folds,
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     accuracy: dict[str, Any] | None = None
@@ -312,6 +308,7 @@ def build_site(
     sessions: sessionmaker[Session],
     site_id: str,
     raster_cell: float,
+    folds: int,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Run a whole build (read, compute, store) and return the summary with its duration.
@@ -322,22 +319,25 @@ def build_site(
     with session_scope(sessions) as db:
         site = db.get(Site, site_id)
         if site is None:
-            raise ApiError(404, f"site '{site_id}' not found")
+            raise NotFound(f"site '{site_id}' not found")
         inputs = load_inputs(db=db, site=site, raster_cell=raster_cell)
-    result = compute_build(inputs, progress=progress)
+    result = compute_build(inputs, folds=folds, progress=progress)
     with session_scope(sessions) as db:
         site = db.get(Site, site_id)
         if site is None:
-            raise ApiError(404, f"site '{site_id}' was deleted during the build")
+            raise NotFound(f"site '{site_id}' was deleted during the build")
         store_build(db=db, site=site, result=result)
         version = site.map_version
     elapsed_ms = round((time.perf_counter() - started) * 1000.0, 1)
     return result.summary | {"map_version": version, "elapsed_ms": elapsed_ms}
 
 
-def get_build(*, db: Session, site_id: str) -> RadioMapBuild | None:
-    """Return the site's stored build summary row, or None when never built."""
-    return db.get(RadioMapBuild, site_id)
+def get_build(*, db: Session, site_id: str) -> RadioMapBuild:
+    """Return the site's stored build summary row; NotFound when never built."""
+    build = db.get(RadioMapBuild, site_id)
+    if build is None:
+        raise NotFound(f"site '{site_id}' has no radio map yet: POST .../radiomap/build")
+    return build
 
 
 def create_job(*, db: Session, site_id: str) -> RadioMapJob:
@@ -372,7 +372,9 @@ def update_job(
             job.error = error
 
 
-def get_job(*, db: Session, site_id: str, job_id: str) -> RadioMapJob | None:
-    """Return the site's build job, or None (also when it belongs to another site)."""
+def get_job(*, db: Session, site_id: str, job_id: str) -> RadioMapJob:
+    """Return the site's build job; NotFound also when it belongs to another site."""
     job = db.get(RadioMapJob, job_id)
-    return job if job is not None and job.site_id == site_id else None
+    if job is None or job.site_id != site_id:
+        raise NotFound(f"build job '{job_id}' not found in site '{site_id}'")
+    return job

@@ -8,21 +8,20 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.sites.models import Site
 
-TTL_S = 2.0
-
 
 class SiteVersions:
-    """Site id → map version, re-read from the database at most every ``TTL_S`` seconds."""
+    """Site id → map version, re-read from the database at most every ``ttl_s`` seconds."""
 
-    def __init__(self, sessions: sessionmaker[Session]) -> None:
+    def __init__(self, sessions: sessionmaker[Session], *, ttl_s: float) -> None:
         self.sessions = sessions
+        self.ttl_s = ttl_s
         self._entries: dict[str, tuple[float, int | None]] = {}
 
     def get(self, site_id: str) -> int | None:
         """Return the site's map version, or None when the site does not exist."""
         now = time.monotonic()
         hit = self._entries.get(site_id)
-        if hit is not None and now - hit[0] < TTL_S:
+        if hit is not None and now - hit[0] < self.ttl_s:
             return hit[1]
         with self.sessions() as db:
             site = db.get(Site, site_id)

@@ -1,4 +1,4 @@
-"""Load-or-404 for sites."""
+"""The site named by a request's path, or 404."""
 
 from __future__ import annotations
 
@@ -6,19 +6,15 @@ from typing import Annotated
 
 from fastapi import Depends
 
-from app.core.deps import SessionDep
-from app.core.errors import ApiError
 from app.core.schemas import SiteIdPath
 from app.sites.models import Site
-from app.sites.service import get_site
+from app.sites.service import require_site
+from app.state import SessionDep
 
 
-def load_site(site_id: SiteIdPath, db: SessionDep) -> Site:
+def site_or_404(site_id: SiteIdPath, db: SessionDep) -> Site:
     """Return the path's site or answer 404."""
-    site = get_site(db=db, site_id=site_id)
-    if site is None:
-        raise ApiError(404, f"site '{site_id}' not found")
-    return site
+    return require_site(db=db, site_id=site_id)
 
 
-SiteDep = Annotated[Site, Depends(load_site)]
+SiteDep = Annotated[Site, Depends(site_or_404)]

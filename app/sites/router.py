@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from app.core.deps import AdminDep, PrincipalDep, SessionDep, SiteReaderDep
-from app.core.errors import ApiError
+from app.core.errors import Forbidden
 from app.core.schemas import LimitQuery, OffsetQuery, Page, SiteIdPath
-from app.core.state import StateDep
+from app.keys.deps import AdminDep, PrincipalDep, SiteReaderDep
 from app.sites import service
 from app.sites.deps import SiteDep
 from app.sites.schemas import SiteRead, SiteUpsert
+from app.state import SessionDep, StateDep
 
 router = APIRouter(prefix="/v1/sites", tags=["sites"])
 
@@ -43,7 +43,7 @@ def list_sites(
     elif principal.role == "viewer":
         only = principal.site_id
     else:
-        raise ApiError(403, "device keys may not list sites")
+        raise Forbidden("device keys may not list sites")
     rows, total = service.list_sites(db=db, only=only, limit=limit, offset=offset)
     items = [SiteRead.model_validate(r) for r in rows]
     return Page[SiteRead](items=items, total=total, limit=limit, offset=offset)

@@ -5,11 +5,11 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 
 
 class SiteConfig(BaseModel):
-    """Per-site engine choices."""
+    """Per-site engine choices: the older spelling of a site's ``engine``."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -62,7 +62,12 @@ class SiteRead(BaseModel):
     id: str
     name: str
     engine: EngineName
-    config: SiteConfig
     map_version: int
     created_at: datetime
     updated_at: datetime
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def config(self) -> SiteConfig:
+        """The engine in its older spelling, for clients that read ``config.engine``."""
+        return SiteConfig(engine=self.engine)

@@ -1,34 +1,36 @@
-"""Sites: create, read, list, delete."""
+"""Sites: create, read, list, delete, and mark their engine inputs changed."""
 
 from __future__ import annotations
 
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
-from app.devices.models import DeviceState
-from app.positions.models import Position
+from app.core.errors import NotFound
+from app.devices.models import DeviceStateRecord
+from app.positions.models import PositionRecord
 from app.sites.models import Site
 from app.sites.schemas import SiteUpsert
 
 
-def get_site(*, db: Session, site_id: str) -> Site | None:
-    """Return the site or None."""
-    return db.get(Site, site_id)
+def require_site(*, db: Session, site_id: str) -> Site:
+    """Return the site or raise NotFound."""
+    site = db.get(Site, site_id)
+    if site is None:
+        raise NotFound(f"site '{site_id}' not found")
+    return site
 
 
 def upsert_site(*, db: Session, site_id: str, body: SiteUpsert) -> tuple[Site, bool]:
-    """Create the site or update its name/config; return it and whether it was created."""
+    """Create the site or update its name and engine; return it and whether it was created."""
     site = db.get(Site, site_id)
     created = site is None
     if site is None:
-        site = Site(id=site_id, name=body.name, config={}, engine="hmm", map_version=0)
+        site = Site(id=site_id, name=body.name, engine="hmm", map_version=0)
         db.add(site)
     site.name = body.name
     engine = body.chosen_engine()
-    if body.config is not None or (engine is not None and engine != site.engine):
-        if engine is not None:
-            site.engine = engine
-        site.config = {"engine": site.engine or "hmm"}
+    if engine is not None and engine != site.engine:
+        site.engine = engine
         # the engine choice decides which filter new devices get: workers must reload
         site.map_version = (site.map_version or 0) + 1
     db.flush()
@@ -47,8 +49,8 @@ def list_sites(*, db: Session, only: str | None, limit: int, offset: int) -> tup
 
 def delete_site(*, db: Session, site: Site) -> None:
     """Delete the site with its floors, surveys, positions and device states."""
-    db.execute(delete(Position).where(Position.site_id == site.id))
-    db.execute(delete(DeviceState).where(DeviceState.site_id == site.id))
+    db.execute(delete(PositionRecord).where(PositionRecord.site_id == site.id))
+    db.execute(delete(DeviceStateRecord).where(DeviceStateRecord.site_id == site.id))
     db.delete(site)
     db.flush()
 

@@ -11,7 +11,7 @@ from app.core.db import Base, UtcDateTime
 from app.core.time import utcnow
 
 
-class Survey(Base):
+class SurveyRecord(Base):
     """One recording; ``body`` is the request's samples as zlib-compressed JSON."""
 
     __tablename__ = "surveys"

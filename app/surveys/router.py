@@ -4,17 +4,15 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request
 from pydantic import ValidationError
-from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool
 
-from app.core.deps import AdminDep, SessionDep, SettingsDep, SiteReaderDep
-from app.core.errors import ApiError, validation_details
+from app.core.errors import Invalid, TooLarge, validation_details
 from app.core.openapi import json_body
 from app.core.schemas import LimitQuery, OffsetQuery, Page
-from app.floors.service import get_floor
+from app.keys.deps import AdminDep, SiteReaderDep
 from app.sites.deps import SiteDep
+from app.state import SessionDep, SettingsDep
 from app.surveys import service
-from app.surveys.models import Survey
 from app.surveys.schemas import SurveyCreate, SurveyRead
 
 router = APIRouter(prefix="/v1/sites/{site_id}/surveys", tags=["surveys"])
@@ -32,17 +30,13 @@ async def create_survey(
     """Store a survey recording (admin): waypoints plus the sample lists of ingest."""
     raw = await request.body()
     if len(raw) > settings.survey_max_bytes:
-        raise ApiError(413, f"survey larger than {settings.survey_max_bytes} bytes")
+        raise TooLarge(f"survey larger than {settings.survey_max_bytes} bytes")
     try:
         body = await run_in_threadpool(SurveyCreate.model_validate_json, raw)
     except ValidationError as exc:
-        raise ApiError(
-            422,
-            "survey failed validation",
-            details=validation_details(exc.errors(include_url=False)),
+        raise Invalid(
+            "survey failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
-    if get_floor(db=db, site_id=site.id, floor_id=body.floor_id) is None:
-        raise ApiError(404, f"floor '{body.floor_id}' not found in site '{site.id}'")
     survey = await run_in_threadpool(service.create_survey, db=db, site_id=site.id, body=body)
     db.commit()
     return SurveyRead.model_validate(survey)
@@ -57,7 +51,6 @@ def list_surveys(
     offset: OffsetQuery = 0,
 ) -> Page[SurveyRead]:
     """List the site's surveys."""
-    rows = service.list_surveys(db=db, site_id=site.id, limit=limit, offset=offset)
-    total = db.scalar(select(func.count()).where(Survey.site_id == site.id)) or 0
+    rows, total = service.list_surveys(db=db, site_id=site.id, limit=limit, offset=offset)
     items = [SurveyRead.model_validate(r) for r in rows]
     return Page[SurveyRead](items=items, total=total, limit=limit, offset=offset)

@@ -2,46 +2,36 @@
 
 from __future__ import annotations
 
-import asyncio
+from fastapi import APIRouter
 
-from fastapi import APIRouter, Request
-
-from app.core.deps import PrincipalDep, SessionDep
-from app.core.errors import ApiError
-from app.core.state import StateDep
+from app.core.errors import Forbidden
+from app.keys.deps import PrincipalDep
+from app.state import SessionDep, StateDep
 from app.tracks import service
-from app.tracks.models import Track
 from app.tracks.schemas import FittedPoint, TrackAccepted, TrackCreate, TrackRead
 
 router = APIRouter(prefix="/v1/tracks", tags=["tracks"])
-_running: set[asyncio.Task[None]] = set()
 
 
 @router.post("", status_code=202, response_model=TrackAccepted)
 async def create_track(
-    principal: PrincipalDep, body: TrackCreate, db: SessionDep, state: StateDep, request: Request
+    principal: PrincipalDep, body: TrackCreate, db: SessionDep, state: StateDep
 ) -> TrackAccepted:
     """Queue a track for fitting; poll ``GET /v1/tracks/{track_id}`` for the result."""
     if not principal.can_report(body.site_id):
-        raise ApiError(403, f"this key may not upload tracks for site '{body.site_id}'")
+        raise Forbidden(f"this key may not upload tracks for site '{body.site_id}'")
     track, job = service.create_track(db=db, body=body)
     db.commit()
-    fitter = request.app.state.track_fitter
-    publish = state.runtime.hub.publish if state.runtime is not None else (lambda _: None)
-    task = asyncio.create_task(fitter.run(track.id, job, publish))
-    _running.add(task)
-    task.add_done_callback(_running.discard)
+    state.track_fits.submit(track.id, job)
     return TrackAccepted(track_id=track.id)
 
 
 @router.get("/{track_id}", response_model=TrackRead)
 def get_track(principal: PrincipalDep, track_id: str, db: SessionDep) -> TrackRead:
     """Return a track's status and, when done, its fitted points."""
-    track = db.get(Track, track_id)
-    if track is None:
-        raise ApiError(404, f"track '{track_id}' not found")
+    track = service.get_track(db=db, track_id=track_id)
     if not (principal.can_read(track.site_id) or principal.can_report(track.site_id)):
-        raise ApiError(403, f"this key may not read site '{track.site_id}'")
+        raise Forbidden(f"this key may not read site '{track.site_id}'")
     points = [FittedPoint(**p) for p in (track.result or {}).get("points", [])]
     return TrackRead(
         track_id=track.id,

@@ -7,16 +7,11 @@ from typing import Any, TypeVar
 import numpy as np
 
 from app.engine.samples import Batch, Fixes, ImuSamples, Pressure, Ranges, RssiReadings
-from app.workers.sites import LoadedSite
+from app.sites.assembly import LoadedSite
+from app.sites.radio_ids import radio_id
 
 _NAN3 = (np.nan, np.nan, np.nan)
 _A = TypeVar("_A")
-
-
-def radio_id(kind: str, raw: str) -> str:
-    """Return the transmitter table key of a radio sample id of ``kind``."""
-    # MAC addresses are case-insensitive; iBeacon ids are UUID_major_minor as given.
-    return raw.lower() if kind == "wifi" or ":" in raw else raw
 
 
 def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tuple[Batch, int]:

@@ -10,8 +10,8 @@ from shapely import Point
 from app.core.time import now_ms
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker
+from app.sites.assembly import LoadedSite
 from app.workers.convert import to_batch
-from app.workers.sites import LoadedSite
 
 
 class DeviceSession:

@@ -20,11 +20,11 @@ from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.time import now_ms
 from app.engine.samples import Batch, Estimate
-from app.positions.models import Position
+from app.positions.models import PositionRecord
+from app.sites.assembly import assemble_site
 from app.sites.models import Site
 from app.workers import snapshots
 from app.workers.device import DeviceSession
-from app.workers.sites import load_site
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
 from app.workers.trackers import (
     RADIO_KINDS,
@@ -78,7 +78,7 @@ class Shard:
         if row is None:
             self.engines.pop(site_id, None)
             return None
-        loaded = load_site(db=db, site=row, raster_cell=self.settings.raster_cell)
+        loaded = assemble_site(db=db, site=row, raster_cell=self.settings.raster_cell)
         engines = SiteEngines.for_site(loaded)
         self.engines[site_id] = engines
         log.info("shard %d loaded site %s v%d", self.shard, site_id, loaded.version)
@@ -104,7 +104,9 @@ class Shard:
             device.zones = frozenset(str(z) for z in state.get("zones", ()))
             # Re-delivered batches rebuild the filter from an older snapshot; what was
             # already stored must not be emitted twice.
-            last = db.scalar(select(func.max(Position.t)).where(Position.device_id == device_id))
+            last = db.scalar(
+                select(func.max(PositionRecord.t)).where(PositionRecord.device_id == device_id)
+            )
             device.emitted_t = -1 if last is None else int(last)
             self.counters["restored"] += 1
         self.devices[device_id] = device
@@ -170,7 +172,7 @@ class Shard:
                 rows.extend(positions)
                 result.update(positions=positions, events=events, processed_t=device.processed_t)
             if rows:
-                db.execute(insert(Position), [_row(p) for p in rows])
+                db.execute(insert(PositionRecord), [_row(p) for p in rows])
             touched = {d.device_id for d, _ in work if d is not None}
             self._snapshot_due(db, touched, force=False)
         self.update_seconds += time.perf_counter() - started
@@ -278,7 +280,7 @@ class Shard:
                         }
                     )
             if rows:
-                db.execute(insert(Position), [_row(p) for p in rows])
+                db.execute(insert(PositionRecord), [_row(p) for p in rows])
             self._snapshot_due(db, {d.device_id for d in quiet}, force=False)
             self._snapshot_due(db, {d.device_id for d in idle}, force=True)
         for device in idle:

@@ -6,7 +6,7 @@ from typing import Protocol
 
 from sqlalchemy.orm import Session
 
-from app.devices.models import DeviceState
+from app.devices.models import DeviceStateRecord
 
 
 class SnapshotStore(Protocol):
@@ -26,14 +26,14 @@ class DatabaseSnapshots:
 
     def load(self, db: Session, device_id: str) -> tuple[str, bytes] | None:
         """Return the stored snapshot of the device."""
-        row = db.get(DeviceState, device_id)
+        row = db.get(DeviceStateRecord, device_id)
         return None if row is None else (row.site_id, row.snapshot)
 
     def save(self, db: Session, device_id: str, site_id: str, t: int, blob: bytes) -> None:
         """Insert or replace the device's snapshot."""
-        row = db.get(DeviceState, device_id)
+        row = db.get(DeviceStateRecord, device_id)
         if row is None:
-            db.add(DeviceState(device_id=device_id, site_id=site_id, t=t, snapshot=blob))
+            db.add(DeviceStateRecord(device_id=device_id, site_id=site_id, t=t, snapshot=blob))
         else:
             row.site_id, row.t, row.snapshot = site_id, t, blob
 

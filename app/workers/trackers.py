@@ -24,7 +24,7 @@ from app.engine.positioning import PositioningEngine, PositioningParams, floor_e
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker
 from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
-from app.workers.sites import LoadedSite
+from app.sites.assembly import LoadedSite
 
 PF = "pf"
 CENTROID = "centroid"

@@ -123,7 +123,6 @@ def upgrade() -> None:
         batch_op.create_index(batch_op.f("ix_surveys_site_id"), ["site_id"], unique=False)
 
 
-
 def downgrade() -> None:
     """Revert this revision."""
     with op.batch_alter_table("surveys", schema=None) as batch_op:

@@ -126,7 +126,7 @@ def test_key_is_returned_once_and_stored_hashed(
         headers=admin,
     )
     key = r.json()["key"]
-    with client.app.state.sessions() as db:
+    with client.app.state.locus.sessions() as db:
         stored = db.scalars(select(ApiKey.key_hash)).all()
     assert key not in stored
     assert hashlib.sha256(key.encode()).hexdigest() in stored

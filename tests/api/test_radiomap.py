@@ -53,7 +53,7 @@ def built_site(client: TestClient, walks: list[Path]) -> dict[str, Any]:
 
 def _stored(client: TestClient, site_id: str) -> dict[str, Any]:
     """Return every stored row of the site's build, as plain values."""
-    with client.app.state.sessions() as db:
+    with client.app.state.locus.sessions() as db:
         maps = db.scalars(select(RadioMapFloor).where(RadioMapFloor.site_id == site_id)).all()
         fits = db.scalars(
             select(CalibratedTransmitter)
@@ -172,7 +172,7 @@ def test_devices_get_positions_from_the_build(
 
 
 def _counts(client: TestClient, site_id: str) -> tuple[int, int, int, int, int]:
-    with client.app.state.sessions() as db:
+    with client.app.state.locus.sessions() as db:
         site = db.get(Site, site_id)
         return (
             site.map_version if site else -1,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi.testclient import TestClient
 
-from app.surveys.models import Survey
+from app.surveys.models import SurveyRecord
 from app.surveys.service import survey_samples
 
 T0 = 1_700_000_000_000
@@ -34,8 +34,8 @@ def test_survey_is_stored_with_counts(client: TestClient, admin: dict, site_id: 
         "uwb_fix": 0,
         "baro": 0,
     }
-    with client.app.state.sessions() as db:
-        stored = survey_samples(db.get(Survey, body["id"]))
+    with client.app.state.locus.sessions() as db:
+        stored = survey_samples(db.get(SurveyRecord, body["id"]))
     assert stored["waypoints"][1] == {"t": T0 + 10_000, "x": 9.0, "y": 8.0}
     assert stored["wifi"][0]["rssi"] == -61
     listed = client.get(f"/v1/sites/{site_id}/surveys", headers=admin).json()

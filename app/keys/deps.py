@@ -1,37 +1,15 @@
-"""Request dependencies: settings, database session, authentication, site access."""
+"""Request authentication: the caller's key resolved to a principal, and role checks."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request, WebSocket
-from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
-from app.core.config import Settings
-from app.core.errors import ApiError
+from app.core.errors import ApiError, Forbidden
 from app.core.security import Principal
-from app.keys.service import cached_key, resolve_key
-
-
-async def _settings(request: Request) -> Settings:
-    return request.app.state.locus.settings
-
-
-SettingsDep = Annotated[Settings, Depends(_settings)]
-
-
-def get_db(request: Request) -> Iterator[Session]:
-    """Yield a session from the app's factory; handlers commit what they change."""
-    session = request.app.state.sessions()
-    try:
-        yield session
-    finally:
-        session.close()
-
-
-SessionDep = Annotated[Session, Depends(get_db)]
+from app.state import app_state
 
 
 def bearer_key(authorization: str | None, query_key: str | None = None) -> str | None:
@@ -48,9 +26,10 @@ async def authenticate(request: Request) -> Principal:
     key = bearer_key(request.headers.get("authorization"))
     if key is None:
         raise ApiError(401, "missing API key", headers={"WWW-Authenticate": "Bearer"})
-    cached, principal = cached_key(key)
+    keys = app_state(request).keys
+    cached, principal = keys.cached(key)
     if not cached:
-        principal = await run_in_threadpool(_lookup, request.app.state.sessions, key)
+        principal = await run_in_threadpool(keys.resolve, key)
     if principal is None:
         raise ApiError(401, "unknown API key", headers={"WWW-Authenticate": "Bearer"})
     return principal
@@ -59,15 +38,10 @@ async def authenticate(request: Request) -> Principal:
 PrincipalDep = Annotated[Principal, Depends(authenticate)]
 
 
-def _lookup(sessions: sessionmaker[Session], key: str) -> Principal | None:
-    with sessions() as db:
-        return resolve_key(db=db, key=key)
-
-
 async def require_admin(principal: PrincipalDep) -> Principal:
     """Answer 403 unless the caller is an admin."""
     if principal.role != "admin":
-        raise ApiError(403, "admin key required")
+        raise Forbidden("admin key required")
     return principal
 
 
@@ -77,7 +51,7 @@ AdminDep = Annotated[Principal, Depends(require_admin)]
 async def site_reader(site_id: str, principal: PrincipalDep) -> Principal:
     """Answer 403 unless the caller may read ``site_id`` (admin, or its viewer)."""
     if not principal.can_read(site_id):
-        raise ApiError(403, f"this key may not read site '{site_id}'")
+        raise Forbidden(f"this key may not read site '{site_id}'")
     return principal
 
 
@@ -89,7 +63,6 @@ def websocket_principal(websocket: WebSocket) -> Principal | None:
     key = bearer_key(websocket.headers.get("authorization"), websocket.query_params.get("key"))
     if key is None:
         return None
-    cached, principal = cached_key(key)
-    if not cached:
-        principal = _lookup(websocket.app.state.sessions, key)
-    return principal
+    keys = app_state(websocket).keys
+    cached, principal = keys.cached(key)
+    return principal if cached else keys.resolve(key)

@@ -1,9 +1,9 @@
-"""A worker's view of a site: the engine's SiteModel plus the id maps and zones around it."""
+"""A site assembled from the database for the engine: its SiteModel plus the id maps and
+zones around it, as the workers, radio-map builds and planning read it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import shapely
@@ -40,7 +40,6 @@ class LoadedSite:
 
     site_id: str
     version: int
-    config: dict[str, Any]
     model: SiteModel
     floor_ids: tuple[str, ...]
     floor_index: dict[str, int]
@@ -167,10 +166,10 @@ def _with_radiomap(
     return completed, tuple(sorted(maps, key=lambda m: m.floor))
 
 
-def load_site(
+def assemble_site(
     *, db: Session, site: Site, raster_cell: float, with_radiomap: bool = True
 ) -> LoadedSite:
-    """Build the site's engine view from its stored floors and (unless told not to) its
+    """Assemble the site's engine view from its stored floors and (unless told not to) its
     latest radio-map build."""
     floors: list[Floor] = []
     zones: list[Zone] = []
@@ -212,7 +211,6 @@ def load_site(
     return LoadedSite(
         site_id=site.id,
         version=site.map_version,
-        config=dict(site.config or {}),
         model=model,
         floor_ids=tuple(f.floor_id for f in floors),
         floor_index=floor_index,

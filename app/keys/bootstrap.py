@@ -1,4 +1,4 @@
-"""Start-up chores: schema upgrade and the bootstrap admin key."""
+"""The bootstrap admin key: stored from the settings, or generated and shown once."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
-from app.core.db import session_scope, upgrade_database
+from app.core.db import session_scope
 from app.keys.service import create_key, ensure_key, has_admin
 
 
@@ -24,11 +24,6 @@ def bootstrap_admin(*, sessions: sessionmaker[Session], settings: Settings) -> s
         if has_admin(db=db):
             return None
         return create_key(db=db, role="admin", site_id=None, label="bootstrap")
-
-
-def prepare_database(settings: Settings) -> None:
-    """Upgrade the schema to the newest revision."""
-    upgrade_database(settings.resolved_database_url)
 
 
 def announce_admin_key(key: str) -> None:

@@ -1,0 +1,114 @@
+"""Ingest flows: a checked batch handed to the worker runtime, and (with ``wait``) the
+positions its processing emitted."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from app.core.config import Settings
+from app.core.errors import Overloaded, ProcessingFailed, Unavailable
+from app.core.security import Principal
+from app.ingest import service
+from app.ingest.schemas import IngestBatch, LocatorBatch
+from app.sites.cache import SiteVersions
+from app.workers.runtime import Outcome, Runtime
+
+
+async def ingest_batch(
+    *,
+    batch: IngestBatch,
+    principal: Principal,
+    settings: Settings,
+    runtime: Runtime,
+    sites: SiteVersions,
+    wait: bool,
+) -> dict[str, Any]:
+    """Check a device's batch, submit it, and (with ``wait``) await its positions."""
+    count = batch.sample_count
+    version = service.check_batch(
+        site_id=batch.site_id,
+        count=count,
+        noun="samples",
+        latest_t=batch.max_t(),
+        principal=principal,
+        settings=settings,
+        sites=sites,
+    )
+    samples = service.batch_samples(batch)
+    processed = runtime.late_before(batch.device_id)
+    late = sum(1 for items in samples.values() for s in items if s["t"] <= processed)
+    _, future = runtime.submit(
+        site_id=batch.site_id,
+        device_id=batch.device_id,
+        version=version,
+        samples=samples,
+        wait=wait,
+    )
+    if future is None:
+        return {"accepted": count - late, "late": late}
+    outcome = await _outcome(future, settings.ingest_wait_timeout_s)
+    return {"accepted": outcome.accepted, "late": outcome.late, "positions": outcome.positions}
+
+
+async def ingest_locator(
+    *,
+    batch: LocatorBatch,
+    principal: Principal,
+    settings: Settings,
+    runtime: Runtime,
+    sites: SiteVersions,
+    wait: bool,
+) -> dict[str, Any]:
+    """Route each sighting to its tag's filter; with ``wait`` collect the tags' positions."""
+    count = len(batch.sightings)
+    version = service.check_batch(
+        site_id=batch.site_id,
+        count=count,
+        noun="sightings",
+        latest_t=max(s.t for s in batch.sightings),
+        principal=principal,
+        settings=settings,
+        sites=sites,
+    )
+    futures = []
+    late = 0
+    for tag, sightings in service.sightings_by_tag(batch).items():
+        processed = runtime.late_before(tag)
+        late += sum(1 for s in sightings if s["t"] <= processed)
+        _, future = runtime.submit(
+            site_id=batch.site_id,
+            device_id=tag,
+            version=version,
+            samples={"sightings": sightings},
+            wait=wait,
+            # other locators' reports of the same moments are still on their way:
+            # waiting must not cut the tag's reorder window short
+            flush=False,
+        )
+        futures.append(future)
+    if not wait:
+        return {"accepted": count - late, "late": late}
+    timeout_s = settings.ingest_wait_timeout_s
+    outcomes = [await _outcome(f, timeout_s) for f in futures if f is not None]
+    positions = sorted((p for o in outcomes for p in o.positions), key=lambda p: p["t"])
+    return {
+        "accepted": sum(o.accepted for o in outcomes),
+        "late": sum(o.late for o in outcomes),
+        "positions": positions,
+    }
+
+
+async def _outcome(future: asyncio.Future[Outcome], timeout_s: float) -> Outcome:
+    """Await a submitted batch's outcome; the batch stays queued when the wait times out."""
+    try:
+        outcome = await asyncio.wait_for(asyncio.shield(future), timeout_s)
+    except TimeoutError as exc:
+        raise Unavailable(
+            "the batch was queued but not processed in time; it is kept", retry_after_s=5
+        ) from exc
+    if outcome.error is not None:
+        if outcome.status == 429:
+            raise Overloaded(outcome.error, retry_after_s=1)
+        raise ProcessingFailed(f"processing failed: {outcome.error}")
+    return outcome

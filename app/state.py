@@ -1,0 +1,119 @@
+"""The app's long-lived objects, built once by the lifespan, and the request dependencies
+that hand them to routes."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import Depends, Request
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+from starlette.requests import HTTPConnection
+
+from app.core.config import Settings
+from app.core.db import make_engine, make_sessionmaker
+from app.core.errors import Unavailable
+from app.core.metrics import Metrics
+from app.keys.cache import KeyCache
+from app.radiomaps.jobs import RadioMapBuilds
+from app.sites.cache import SiteVersions
+from app.tracks.jobs import TrackFitter
+from app.workers.runtime import Runtime
+
+
+@dataclass
+class AppState:
+    """Everything one app holds for its lifetime; ``runtime`` is None on a node without workers."""
+
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    metrics: Metrics
+    sites: SiteVersions
+    keys: KeyCache
+    runtime: Runtime | None
+    track_fits: TrackFitter
+    radiomap_builds: RadioMapBuilds
+
+    @classmethod
+    async def open(cls, settings: Settings) -> AppState:
+        """Connect the database, start the workers (when this node runs or reaches any) and
+        the track-fit pool."""
+        engine = make_engine(settings.resolved_database_url)
+        sessions = make_sessionmaker(engine)
+        metrics = Metrics()
+        runtime = None
+        if settings.worker_count > 0 or settings.broker != "memory":
+            runtime = Runtime(settings, metrics)
+            await runtime.start()
+        track_fits = TrackFitter(
+            settings, sessions, runtime.hub.publish if runtime is not None else None
+        )
+        track_fits.start()
+        sites = SiteVersions(sessions, ttl_s=settings.site_cache_ttl_s)
+        keys = KeyCache(
+            sessions, ttl_s=settings.key_cache_ttl_s, max_entries=settings.key_cache_size
+        )
+        return cls(
+            settings=settings,
+            engine=engine,
+            sessions=sessions,
+            metrics=metrics,
+            sites=sites,
+            keys=keys,
+            runtime=runtime,
+            track_fits=track_fits,
+            radiomap_builds=RadioMapBuilds(settings, sessions, sites),
+        )
+
+    async def close(self) -> None:
+        """Stop the track fits and the workers (they snapshot their devices); close the
+        database."""
+        self.track_fits.stop()
+        if self.runtime is not None:
+            await self.runtime.stop()
+        self.engine.dispose()
+
+
+def app_state(connection: HTTPConnection) -> AppState:
+    """Return the state of the app serving a request or WebSocket."""
+    return connection.app.state.locus
+
+
+async def get_state(request: Request) -> AppState:
+    """Return the app's state (a dependency)."""
+    return app_state(request)
+
+
+StateDep = Annotated[AppState, Depends(get_state)]
+
+
+async def _settings(state: StateDep) -> Settings:
+    return state.settings
+
+
+SettingsDep = Annotated[Settings, Depends(_settings)]
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    """Yield a session from the app's factory; handlers commit what they change."""
+    session = app_state(request).sessions()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+SessionDep = Annotated[Session, Depends(get_db)]
+
+
+async def get_runtime(state: StateDep) -> Runtime:
+    """Return the worker runtime, or 503 on a node that runs no workers."""
+    if state.runtime is None:
+        raise Unavailable("this node runs no filter workers")
+    return state.runtime
+
+
+RuntimeDep = Annotated[Runtime, Depends(get_runtime)]

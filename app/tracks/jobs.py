@@ -1,0 +1,103 @@
+"""Track-fit jobs: queued tracks fitted in a process pool off the event loop, their results
+stored and the device's fitted position published."""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+from sqlalchemy import insert
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core.config import Settings
+from app.core.db import session_scope
+from app.core.time import now_ms
+from app.positions.models import PositionRecord
+from app.tracks.fitting import run_fit
+from app.tracks.models import Track
+
+Publish = Callable[[list[dict[str, Any]]], None]
+"""Hands position messages to the live subscribers."""
+
+
+class TrackFitter:
+    """Runs fits in a process pool and records their outcome; lives as long as the app."""
+
+    def __init__(
+        self, settings: Settings, sessions: sessionmaker[Session], publish: Publish | None
+    ) -> None:
+        self.settings = settings
+        self.sessions = sessions
+        self.publish = publish
+        self.pool: ProcessPoolExecutor | None = None
+        self._running: set[asyncio.Task[None]] = set()
+
+    def start(self) -> None:
+        """Create the pool (processes start on first use)."""
+        self.pool = ProcessPoolExecutor(
+            max_workers=self.settings.trackfit_processes, mp_context=mp.get_context("spawn")
+        )
+
+    def stop(self) -> None:
+        """Stop the pool."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+
+    def submit(self, track_id: str, job: dict[str, Any]) -> None:
+        """Fit a stored, queued track in the background."""
+        task = asyncio.create_task(self.run(track_id, job))
+        self._running.add(task)
+        task.add_done_callback(self._running.discard)
+
+    async def run(self, track_id: str, job: dict[str, Any]) -> None:
+        """Fit one queued track, store the result and publish the device's new position."""
+        assert self.pool is not None
+        job = job | {
+            "cell": self.settings.raster_cell,
+            "time_limit_s": self.settings.trackfit_time_limit_s,
+        }
+        await asyncio.to_thread(self._set_status, track_id, "running")
+        result = await asyncio.get_running_loop().run_in_executor(self.pool, run_fit, job)
+        position = await asyncio.to_thread(self._finish, track_id, result)
+        if position is not None and self.publish is not None:
+            self.publish([position])
+
+    def _set_status(self, track_id: str, status: str) -> None:
+        with session_scope(self.sessions) as db:
+            track = db.get(Track, track_id)
+            if track is not None:
+                track.status = status
+
+    def _finish(self, track_id: str, result: dict[str, Any]) -> dict[str, Any] | None:
+        with session_scope(self.sessions) as db:
+            track = db.get(Track, track_id)
+            if track is None:
+                return None
+            track.status = result["status"]
+            track.result = {"points": result.get("points", [])}
+            track.score = result.get("score")
+            track.elapsed_ms = result.get("elapsed_ms")
+            track.error = result.get("error")
+            if result["status"] != "done" or not result.get("points"):
+                return None
+            last = result["points"][-1]
+            position = {
+                "type": "position",
+                "device_id": track.device_id,
+                "site_id": track.site_id,
+                "floor_id": track.floor_id,
+                "t": last["t"],
+                "x": last["x"],
+                "y": last["y"],
+                "z": 0.0,
+                "heading": None,
+                "accuracy": round(result["grid"] / 2, 3),
+                "speed": None,
+                "method": "trackfit",
+                "computed_at": now_ms(),
+            }
+            db.execute(insert(PositionRecord), [{k: v for k, v in position.items() if k != "type"}])
+            return position

@@ -1,0 +1,90 @@
+"""Settings are checked when a node starts: a bad URL or an out-of-range limit stops it with a
+message naming the setting and what it accepts, never echoing a password."""
+
+from __future__ import annotations
+
+import pytest
+
+from app.cli import main
+from app.core.config import Settings
+
+
+@pytest.mark.parametrize(
+    ("url", "says"),
+    [
+        ("mysql+pymysql://locus:secret@db/locus", "unsupported scheme 'mysql+pymysql'"),
+        ("postgresql://locus:secret@db/locus", "unsupported scheme 'postgresql'"),
+        ("locus.db", "is not a database URL"),
+    ],
+)
+def test_a_bad_database_url_names_the_setting_and_the_accepted_forms(url: str, says: str) -> None:
+    with pytest.raises(ValueError) as raised:
+        Settings(database_url=url)
+    message = str(raised.value)
+    assert "database_url" in message and says in message
+    assert "sqlite:///" in message and "postgresql+psycopg://" in message
+    assert "secret" not in message
+
+
+@pytest.mark.parametrize("url", ["", "sqlite:///var/locus.db", "postgresql+psycopg://u@h:5432/d"])
+def test_the_accepted_database_urls_pass(url: str) -> None:
+    assert Settings(database_url=url).database_url == url
+
+
+@pytest.mark.parametrize(
+    ("broker", "says"),
+    [("kafka://u:secret@k:9092", "a 'kafka' URL"), ("redis-host:6379", "neither")],
+)
+def test_a_bad_broker_names_the_setting_and_the_accepted_forms(broker: str, says: str) -> None:
+    with pytest.raises(ValueError) as raised:
+        Settings(broker=broker)
+    message = str(raised.value)
+    assert "broker" in message and "'memory'" in message and "redis://" in message
+    assert says in message and "secret" not in message
+
+
+@pytest.mark.parametrize("broker", ["memory", "redis://127.0.0.1:6379/0", "rediss://r:6380/1"])
+def test_the_accepted_brokers_pass(broker: str) -> None:
+    assert Settings(broker=broker).broker == broker
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("ingest_wait_timeout_s", 0),
+        ("site_cache_ttl_s", -1),
+        ("key_cache_ttl_s", 86_400),
+        ("key_cache_size", 0),
+        ("planning_max_cells", 0),
+        ("radiomap_folds", 1),
+        ("radiomap_progress_step", 1.5),
+        ("port", 70_000),
+        ("max_samples", 0),
+        ("shard_backlog", 0),
+        ("reorder_window_ms", -1),
+    ],
+)
+def test_a_limit_out_of_its_range_is_rejected(field: str, value: float) -> None:
+    with pytest.raises(ValueError, match=field):
+        Settings(**{field: value})
+
+
+def test_limits_are_read_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("LOCUS_INGEST_WAIT_TIMEOUT_S", "5")
+    monkeypatch.setenv("LOCUS_PLANNING_MAX_CELLS", "1000")
+    settings = Settings()
+    assert settings.ingest_wait_timeout_s == 5.0 and settings.planning_max_cells == 1000
+    monkeypatch.setenv("LOCUS_BROKER", "amqp://rabbit")
+    with pytest.raises(ValueError, match="broker"):
+        Settings()
+
+
+def test_every_setting_says_what_it_is_for() -> None:
+    undocumented = [name for name, field in Settings.model_fields.items() if not field.description]
+    assert undocumented == []
+
+
+def test_the_cli_stops_on_a_bad_setting_with_its_name() -> None:
+    with pytest.raises(SystemExit) as raised:
+        main(["worker", "--broker", "kafka://k:9092"])
+    assert "invalid settings" in str(raised.value) and "broker" in str(raised.value)
