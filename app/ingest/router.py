@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 
 from app.core.deps import PrincipalDep, websocket_principal
-from app.core.errors import ApiError, error_body, validation_details
+from app.core.errors import ApiError, DomainError, error_body, validation_details
 from app.core.openapi import json_body
 from app.core.state import RuntimeDep, StateDep
 from app.ingest import service
@@ -132,7 +132,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                 )
                 state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
                 await websocket.send_text(json.dumps(result))
-            except ApiError as exc:
+            except (ApiError, DomainError) as exc:
                 await websocket.send_json(
                     error_body(exc.code, exc.message, exc.details) | {"status": exc.status}
                 )

@@ -56,7 +56,7 @@ async def ingest_batch(
         for kind in SAMPLE_KINDS
         if getattr(batch, kind)
     }
-    processed = runtime.late_before(batch.device_id)
+    processed = runtime.last_processed_t(batch.device_id)
     late = sum(1 for items in samples.values() for s in items if s["t"] <= processed)
     _, future = runtime.submit(
         site_id=batch.site_id,
@@ -94,7 +94,7 @@ async def ingest_locator(
     futures = []
     late = 0
     for tag, sightings in by_tag.items():
-        processed = runtime.late_before(tag)
+        processed = runtime.last_processed_t(tag)
         late += sum(1 for s in sightings if s["t"] <= processed)
         _, future = runtime.submit(
             site_id=batch.site_id,
@@ -128,7 +128,5 @@ async def _await(future: asyncio.Future[Outcome]) -> Outcome:
             headers={"Retry-After": "5"},
         ) from exc
     if outcome.error is not None:
-        if outcome.status == 429:
-            raise ApiError(429, outcome.error, headers={"Retry-After": "1"})
-        raise ApiError(500, f"processing failed: {outcome.error}", code="processing_failed")
+        raise outcome.error
     return outcome
