@@ -115,7 +115,6 @@ class Shard:
     def handle(self, messages: list[Message]) -> list[Message]:
         """Process ingest messages; positions are stored before any result is returned."""
         started = time.perf_counter()
-        now = self.clock()
         results: list[Message] = []
         rows: list[Message] = []
         with session_scope(self.sessions) as db:
@@ -135,6 +134,8 @@ class Shard:
                     )
                     work.append((None, None))
                     continue
+                # a device's silence is timed from when its samples were taken in
+                now = self.clock()
                 device = self._device(db, msg["device_id"], engines, now)
                 accepted, late, duplicate = device.add(msg["samples"], now=now)
                 self.counters["samples"] += accepted
@@ -144,6 +145,7 @@ class Shard:
                 results.append(done | {"accepted": accepted, "late": late, "duplicate": duplicate})
                 work.append((device, batch))
             outputs = self._run(work)
+            now = self.clock()
             for result, (routed, _), estimates in zip(results, work, outputs, strict=True):
                 if routed is None:
                     continue
