@@ -1,4 +1,4 @@
-"""The interface every per-device filter offers to the workers."""
+"""The interface a worker's shard uses on every device's filter, whatever its kind."""
 
 from __future__ import annotations
 
@@ -19,6 +19,14 @@ class Tracker(Protocol):
         """Consume one time-ordered batch and return the estimates it produced."""
         ...
 
+    def flush(self) -> list[Estimate]:
+        """Return the estimates of what the filter still holds back (the device went quiet)."""
+        ...
+
     def snapshot(self) -> dict[str, Any]:
         """Return the state needed to resume exactly where this filter stands."""
+        ...
+
+    def close(self) -> None:
+        """Free what the filter holds outside itself; it is not used afterwards."""
         ...

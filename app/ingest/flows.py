@@ -7,7 +7,7 @@ import asyncio
 from typing import Any
 
 from app.core.config import Settings
-from app.core.errors import Overloaded, ProcessingFailed, Unavailable
+from app.core.errors import Unavailable
 from app.core.security import Principal
 from app.ingest import service
 from app.ingest.schemas import IngestBatch, LocatorBatch
@@ -36,7 +36,7 @@ async def ingest_batch(
         sites=sites,
     )
     samples = service.batch_samples(batch)
-    processed = runtime.late_before(batch.device_id)
+    processed = runtime.last_processed_t(batch.device_id)
     late = sum(1 for items in samples.values() for s in items if s["t"] <= processed)
     _, future = runtime.submit(
         site_id=batch.site_id,
@@ -74,7 +74,7 @@ async def ingest_locator(
     futures = []
     late = 0
     for tag, sightings in service.sightings_by_tag(batch).items():
-        processed = runtime.late_before(tag)
+        processed = runtime.last_processed_t(tag)
         late += sum(1 for s in sightings if s["t"] <= processed)
         _, future = runtime.submit(
             site_id=batch.site_id,
@@ -108,7 +108,5 @@ async def _outcome(future: asyncio.Future[Outcome], timeout_s: float) -> Outcome
             "the batch was queued but not processed in time; it is kept", retry_after_s=5
         ) from exc
     if outcome.error is not None:
-        if outcome.status == 429:
-            raise Overloaded(outcome.error, retry_after_s=1)
-        raise ProcessingFailed(f"processing failed: {outcome.error}")
+        raise outcome.error
     return outcome

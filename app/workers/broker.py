@@ -64,7 +64,6 @@ class _Slot:
         self.outbox: Any = None
         self.reader: threading.Thread | None = None
         self.pending: OrderedDict[str, Message] = OrderedDict()
-        self.restarts = 0
         self.ready = threading.Event()
 
 
@@ -152,7 +151,6 @@ class MemoryBroker:
                     )
                     if slot.reader is not None:
                         slot.reader.join(timeout=5)
-                    slot.restarts += 1
                     self.on_restart(slot.shard)
                     self._spawn(slot)
 
@@ -192,7 +190,3 @@ class MemoryBroker:
         return all(
             s.process is not None and s.process.is_alive() and s.ready.is_set() for s in self._slots
         )
-
-    def worker_pids(self) -> list[int]:
-        """Return the worker processes' pids (operators and tests kill them by pid)."""
-        return [s.process.pid for s in self._slots]

@@ -1,17 +1,32 @@
-"""One device inside a worker: reorder buffer, filter, zones, snapshot bookkeeping."""
+"""One device inside a worker: reorder buffer, filter, zones, and the snapshot that resumes them."""
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
 from shapely import Point
 
-from app.core.time import now_ms
 from app.engine.samples import Batch, Estimate
-from app.engine.tracker import Tracker
 from app.sites.assembly import LoadedSite
 from app.workers.convert import to_batch
+from app.workers.trackers import (
+    RADIO_KINDS,
+    DeviceTracker,
+    SiteEngines,
+    choose_kind,
+    make_tracker,
+    radio_kind,
+)
+
+Sample = dict[str, Any]
+Message = dict[str, Any]
+
+
+def _key(kind: str, sample: Sample) -> int:
+    """Return the identity of a sample, to recognise the same sample delivered twice."""
+    return hash((kind, repr(sample)))
 
 
 class DeviceSession:
@@ -23,34 +38,40 @@ class DeviceSession:
     Samples are held until they are ``reorder_ms`` older (in measurement time)
     than the newest sample seen, so batches that overtake each other on the
     network are still used in time order. Older arrivals are counted late.
+
+    The session reads no clock: its owner passes the wall time (``now``, epoch
+    milliseconds) to the calls that need it.
     """
 
-    def __init__(
-        self,
-        *,
-        device_id: str,
-        site: LoadedSite,
-        tracker: Tracker | None = None,
-        processed_t: int = -1,
-        zones: frozenset[str] = frozenset(),
-    ) -> None:
+    def __init__(self, *, device_id: str, engines: SiteEngines, now: int) -> None:
         self.device_id = device_id
-        self.site = site
-        self.tracker = tracker
-        self.processed_t = processed_t
-        self.max_t = processed_t
-        self.zones = zones
-        self.buffer: list[tuple[int, str, dict[str, Any]]] = []
+        self.engines = engines
+        self.tracker: DeviceTracker | None = None
+        self.processed_t = -1
+        self.max_t = -1
+        self.zones: frozenset[str] = frozenset()
+        self.buffer: list[tuple[int, str, Sample]] = []
         self.seen: set[int] = set()
-        self.snapshot_t = processed_t
-        self.last_seen_wall = now_ms()
-        self.unknown = 0
+        self.snapshot_t = -1
+        self.last_seen = now
         self.emitted_t = -1
         self.unflushed = False
         self.kinds: set[str] = set()
 
-    def add(self, samples: dict[str, list[dict[str, Any]]]) -> tuple[int, int, int]:
-        """Buffer a batch; return (accepted, late, duplicate) sample counts."""
+    @property
+    def site(self) -> LoadedSite:
+        """Return the site version the device is positioned on."""
+        return self.engines.site
+
+    @property
+    def pending(self) -> bool:
+        """Return whether samples wait in the buffer or the filter has unflushed input."""
+        return bool(self.buffer) or self.unflushed
+
+    # -- samples in, batches out -----------------------------------------------------
+
+    def add(self, samples: dict[str, list[Sample]], *, now: int) -> tuple[int, int, int]:
+        """Buffer a batch received at ``now``; return (accepted, late, duplicate) sample counts."""
         accepted = late = duplicate = 0
         for kind, items in samples.items():
             for sample in items:
@@ -58,7 +79,7 @@ class DeviceSession:
                 if t <= self.processed_t:
                     late += 1
                     continue
-                key = hash((kind, repr(sample)))
+                key = _key(kind, sample)
                 if key in self.seen:
                     duplicate += 1
                     continue
@@ -66,32 +87,60 @@ class DeviceSession:
                 self.buffer.append((t, kind, sample))
                 self.max_t = max(self.max_t, t)
                 accepted += 1
-        self.last_seen_wall = now_ms()
+        self.last_seen = now
         return accepted, late, duplicate
 
-    def take(self, *, reorder_ms: int, flush: bool) -> Batch | None:
-        """Return what is older than the reorder window (all of it on flush), as engine arrays."""
+    def take(self, *, reorder_ms: int, flush: bool) -> tuple[Batch | None, int]:
+        """Release what is older than the reorder window (all of it on flush) as engine arrays.
+
+        Returns the batch (None when nothing is released) and how many of its
+        samples name ids the site does not know. The first batch released
+        chooses the device's filter.
+        """
         if not self.buffer:
-            return None
+            return None, 0
         watermark = self.max_t if flush else self.max_t - reorder_ms
         self.buffer.sort(key=lambda item: item[0])
         cut = 0
         while cut < len(self.buffer) and self.buffer[cut][0] <= watermark:
             cut += 1
         if cut == 0:
-            return None
+            return None, 0
         ready, self.buffer = self.buffer[:cut], self.buffer[cut:]
         self.processed_t = ready[-1][0]
-        self.seen = {hash((k, repr(s))) for _, k, s in self.buffer}
-        grouped: dict[str, list[dict[str, Any]]] = {}
+        self.seen = {_key(k, s) for _, k, s in self.buffer}
+        grouped: dict[str, list[Sample]] = {}
         for _, kind, sample in ready:
             grouped.setdefault(kind, []).append(sample)
         self.kinds |= set(grouped)
         batch, unknown = to_batch(self.site, grouped)
-        self.unknown += unknown
-        return batch
+        self.unflushed = True
+        if self.tracker is None:
+            kind = choose_kind(self.site, batch, self.kinds)
+            self.tracker = make_tracker(kind, self.engines, self.device_id, None)
+        return batch, unknown
 
-    def zone_events(self, estimate: Estimate) -> list[dict[str, Any]]:
+    def flush_filter(self) -> list[Estimate]:
+        """Return what the filter still holds back: the device went quiet, its recording ended."""
+        self.unflushed = False
+        return [] if self.tracker is None else self.tracker.flush()
+
+    # -- estimates out -------------------------------------------------------------------
+
+    def emit(self, estimates: list[Estimate], *, now: int) -> tuple[list[Message], list[Message]]:
+        """Return the position messages and zone events of the estimates not yet emitted.
+
+        Estimates at or before the last emitted time are dropped: a filter
+        rebuilt from an older snapshot repeats what was already stored.
+        """
+        fresh = [e for e in estimates if e.t > self.emitted_t]
+        if fresh:
+            self.emitted_t = fresh[-1].t
+        positions = [self._position(e, now) for e in fresh]
+        events = [ev for e in fresh for ev in self._zone_events(e)]
+        return positions, events
+
+    def _zone_events(self, estimate: Estimate) -> list[Message]:
         """Return enter/exit events for the zones this estimate moved into or out of."""
         if not self.site.zones:
             return []
@@ -116,8 +165,8 @@ class DeviceSession:
         self.zones = inside
         return events
 
-    def position(self, estimate: Estimate) -> dict[str, Any]:
-        """Return the API's position message for an estimate."""
+    def _position(self, estimate: Estimate, now: int) -> Message:
+        """Return the API's position message for an estimate computed at ``now``."""
         floor = self.site.model.floors[estimate.floor] if self.site.model.floors else None
         return {
             "type": "position",
@@ -132,5 +181,61 @@ class DeviceSession:
             "accuracy": round(estimate.accuracy, 3),
             "speed": None if math.isnan(estimate.speed) else round(estimate.speed, 3),
             "method": estimate.method,
-            "computed_at": now_ms(),
+            "computed_at": now,
         }
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return everything needed to resume the device exactly, as snapshot data.
+
+        That is its filter (kind and state), the reorder buffer, the zones it is
+        in, the sample kinds it has sent and what it has processed and emitted.
+        """
+        state: dict[str, Any] = {
+            "processed_t": self.processed_t,
+            "emitted_t": self.emitted_t,
+            "unflushed": self.unflushed,
+            "zones": sorted(self.zones),
+            "kinds": sorted(self.kinds),
+            "buffer": json.dumps([list(item) for item in self.buffer]),
+        }
+        if self.tracker is not None:
+            state["tracker"] = {"kind": self.tracker.kind, "state": self.tracker.snapshot()}
+        return state
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Resume from a :meth:`snapshot` (keys a snapshot lacks read as empty)."""
+        self.close()
+        tracker = state.get("tracker")
+        if tracker is not None:
+            self.tracker = make_tracker(
+                str(tracker["kind"]), self.engines, self.device_id, tracker["state"]
+            )
+        self.processed_t = self.snapshot_t = int(state["processed_t"])
+        self.emitted_t = int(state.get("emitted_t", -1))
+        self.unflushed = bool(state.get("unflushed", False))
+        self.zones = frozenset(str(z) for z in state.get("zones", ()))
+        self.kinds = {str(k) for k in state.get("kinds", ())}
+        self.buffer = [(int(t), str(k), s) for t, k, s in json.loads(state.get("buffer", "[]"))]
+        self.seen = {_key(k, s) for _, k, s in self.buffer}
+        self.max_t = max([self.processed_t] + [t for t, _, _ in self.buffer])
+
+    def use_site(self, engines: SiteEngines) -> None:
+        """Move the device onto another version of its site, its filter rebuilt from its state."""
+        if self.tracker is not None:
+            kind = self.tracker.kind
+            state: dict[str, Any] | None = self.tracker.snapshot()
+            self.close()
+            wanted = radio_kind(engines.site)
+            if kind in RADIO_KINDS and self.kinds & {"wifi", "ble"} and wanted != kind:
+                # a build or an engine change gave the site a better filter for this device
+                kind, state = wanted, None
+            self.tracker = make_tracker(kind, engines, self.device_id, state)
+        self.engines = engines
+
+    def close(self) -> None:
+        """Free the device's filter (its slot in a shared engine)."""
+        if self.tracker is not None:
+            self.tracker.close()
+        self.tracker = None

@@ -11,6 +11,7 @@ from typing import Any
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
 from app.core.logging import configure_logging
+from app.core.time import now_ms
 from app.workers.shard import Shard
 
 log = logging.getLogger(__name__)
@@ -70,7 +71,9 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
 
     signal.signal(signal.SIGTERM, _terminate)
     engine = make_engine(settings.resolved_database_url)
-    shard = Shard(shard=shard_id, settings=settings, sessions=make_sessionmaker(engine))
+    shard = Shard(
+        shard=shard_id, settings=settings, sessions=make_sessionmaker(engine), clock=now_ms
+    )
     outbox.put([{"type": "ready", "shard": shard_id}])
     last_stats = 0.0
     while not stopping:
@@ -86,7 +89,5 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
         if time.monotonic() - last_stats >= STATS_EVERY_S:
             outbox.put([shard.stats()])
             last_stats = time.monotonic()
-    shard.settings = shard.settings.model_copy(update={"idle_evict_s": 0.0, "flush_after_s": 0.0})
-    # flush every buffer, then snapshot and evict everything
-    outbox.put(shard.tick() + shard.tick() + [shard.stats()])
+    outbox.put(shard.drain() + [shard.stats()])
     engine.dispose()

@@ -29,6 +29,7 @@ import redis
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
+from app.core.time import now_ms
 from app.workers.process import handle_safely
 from app.workers.shard import Shard
 from app.workers.snapshot_store import RedisSnapshots
@@ -49,6 +50,15 @@ def stream_key(shard: int) -> str:
 def lease_key(shard: int) -> str:
     """Return the lease key of a shard."""
     return f"locus:lease:{shard}"
+
+
+def ensure_group(client: redis.Redis, shard: int) -> None:
+    """Create the shard's stream and its consumer group unless they exist."""
+    try:
+        client.xgroup_create(stream_key(shard), GROUP, id="0", mkstream=True)
+    except redis.ResponseError as exc:
+        if "BUSYGROUP" not in str(exc):
+            raise
 
 
 # Renew only a lease we still hold: compare-and-pexpire.
@@ -83,7 +93,7 @@ class RedisBroker:
     def start(self, on_results: Any) -> None:
         """Start the publisher and the results listener."""
         for shard in range(self.shards):
-            self._ensure_group(shard)
+            ensure_group(self.client, shard)
         self._on_results = on_results
         for target, name in (
             (self._publish_loop, "redis-publish"),
@@ -93,13 +103,6 @@ class RedisBroker:
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
             self._threads.append(thread)
-
-    def _ensure_group(self, shard: int) -> None:
-        try:
-            self.client.xgroup_create(stream_key(shard), GROUP, id="0", mkstream=True)
-        except redis.ResponseError as exc:
-            if "BUSYGROUP" not in str(exc):
-                raise
 
     def publish(self, shard: int, message: Message) -> None:
         """Queue the batch for the publisher thread (pipelined XADDs, off the event loop)."""
@@ -233,7 +236,9 @@ class RedisWorker:
         for shard in list(self.shards):
             if not self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms]):
                 log.warning("%s lost shard %d", self.name, shard)
-                del self.shards[shard]
+                # Another worker may run the shard already: storing positions or snapshots
+                # now could overwrite its newer ones, so the devices are only let go.
+                self.shards.pop(shard).close()
         fair = math.ceil(self.settings.shards / self._live_workers())
         for shard in range(self.settings.shards):
             if len(self.shards) >= fair:
@@ -244,20 +249,15 @@ class RedisWorker:
                 self._take(shard)
         # give back what is over the fair share so a newcomer gets work
         while len(self.shards) > fair:
-            shard = max(self.shards)
-            self._flush(self.shards.pop(shard))
-            self._release(keys=[lease_key(shard)], args=[self.name])
+            self._hand_back(max(self.shards))
 
     def _take(self, shard: int) -> None:
-        try:
-            self.client.xgroup_create(stream_key(shard), GROUP, id="0", mkstream=True)
-        except redis.ResponseError as exc:
-            if "BUSYGROUP" not in str(exc):
-                raise
+        ensure_group(self.client, shard)
         self.shards[shard] = Shard(
             shard=shard,
             settings=self.settings,
             sessions=self.sessions,
+            clock=now_ms,
             snapshots=self.snapshots,
             engines=self.engines,
         )
@@ -286,13 +286,12 @@ class RedisWorker:
         pipe.xack(stream_key(shard), GROUP, *[entry_id for entry_id, _ in entries])
         pipe.execute()
 
-    def _flush(self, shard: Shard) -> None:
-        shard.settings = shard.settings.model_copy(
-            update={"idle_evict_s": 0.0, "flush_after_s": 0.0}
-        )
-        results = shard.tick() + shard.tick()
+    def _hand_back(self, shard_id: int) -> None:
+        """Drain the shard (its devices snapshotted for the next owner) and release its lease."""
+        results = self.shards.pop(shard_id).drain()
         if results:
             self.client.publish(RESULTS, json.dumps(results, separators=(",", ":")))
+        self._release(keys=[lease_key(shard_id)], args=[self.name])
 
     def run(self, stop: threading.Event) -> None:
         """Process until ``stop`` is set, then flush and hand the shards back."""
@@ -304,12 +303,13 @@ class RedisWorker:
             if not self.shards:
                 stop.wait(0.2)
                 continue
-            streams = {stream_key(s): ">" for s in self.shards}
-            response = self.client.xreadgroup(GROUP, self.name, streams, count=500, block=50)
+            streams: dict[Any, Any] = {stream_key(s): ">" for s in self.shards}
+            response: Any = self.client.xreadgroup(GROUP, self.name, streams, count=500, block=50)
             for key, entries in response or ():
-                shard = int((key.decode() if isinstance(key, bytes) else key).rsplit(":", 1)[1])
-                if shard in self.shards:
-                    self._process(shard, entries)
+                name = key.decode() if isinstance(key, bytes) else key
+                shard_id = int(name.rsplit(":", 1)[1])
+                if shard_id in self.shards:
+                    self._process(shard_id, entries)
             emitted = [m for shard in self.shards.values() for m in shard.tick()]
             if time.monotonic() - self._last_stats >= 1.0:
                 emitted += [shard.stats() for shard in self.shards.values()]
@@ -317,8 +317,7 @@ class RedisWorker:
             if emitted:
                 self.client.publish(RESULTS, json.dumps(emitted, separators=(",", ":")))
         for shard_id in list(self.shards):
-            self._flush(self.shards.pop(shard_id))
-            self._release(keys=[lease_key(shard_id)], args=[self.name])
+            self._hand_back(shard_id)
         self.client.delete(f"locus:worker:{self.name}")
         self.engine.dispose()
 

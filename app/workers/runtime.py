@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.core.config import Settings
-from app.core.errors import ApiError
+from app.core.errors import DomainError, Overloaded, ProcessingFailed
 from app.core.metrics import Metrics
 from app.positions.hub import PositionHub
 from app.workers.broker import Broker, MemoryBroker
@@ -26,13 +26,12 @@ Message = dict[str, Any]
 
 @dataclass
 class Outcome:
-    """What the workers did with one batch."""
+    """What the workers did with one batch; ``error`` says why it was not processed."""
 
     accepted: int
     late: int
     positions: list[Message]
-    error: str | None = None
-    status: int = 500
+    error: DomainError | None = None
 
 
 class Runtime:
@@ -99,20 +98,18 @@ class Runtime:
         ``flush`` (default: ``wait``) has the worker process the device's whole
         reorder buffer at once instead of holding its newest samples back.
 
-        Raises ApiError 429 when the device or its shard is over its bound.
+        Raises Overloaded when the device or its shard is over its bound.
         """
         shard = shard_of(device_id, self.broker.shards)
         if self.inflight[device_id] >= self.settings.max_inflight_batches:
             self.metrics.ingest_rejected.labels("device_backlog").inc()
-            raise ApiError(
-                429,
-                f"device '{device_id}' has too many unprocessed batches",
-                headers={"Retry-After": "1"},
+            raise Overloaded(
+                f"device '{device_id}' has too many unprocessed batches", retry_after_s=1
             )
         overloaded = self.broker.backlog(shard) >= self.settings.shard_backlog
         if overloaded and self.settings.overload_policy == "reject":
             self.metrics.ingest_rejected.labels("shard_backlog").inc()
-            raise ApiError(429, "the device's worker is overloaded", headers={"Retry-After": "1"})
+            raise Overloaded("the device's worker is overloaded", retry_after_s=1)
         batch_id = f"{self._prefix}-{next(self._ids)}"
         future: asyncio.Future[Outcome] | None = None
         if wait:
@@ -151,9 +148,10 @@ class Runtime:
             del self.inflight[device_id]
         future = self.waiting.pop(batch_id, None)
         if future is not None and not future.done():
-            future.set_result(
-                Outcome(0, 0, [], "dropped for a newer batch of the device (overload)", 429)
+            reason = Overloaded(
+                "dropped for a newer batch of the device (overload)", retry_after_s=1
             )
+            future.set_result(Outcome(0, 0, [], reason))
 
     async def _forward_parked(self) -> None:
         """Publish parked batches as their shards' backlogs fall below the bound."""
@@ -164,8 +162,11 @@ class Runtime:
                     del self.parked[device_id]
                     self.broker.publish(shard, message)
 
-    def late_before(self, device_id: str) -> int:
-        """Return the newest measurement time the device's worker has processed (-1: none)."""
+    def last_processed_t(self, device_id: str) -> int:
+        """Return the newest measurement time the device's worker has processed (-1: none).
+
+        Samples at or before it arrive too late to be used.
+        """
         return self.processed_t.get(device_id, -1)
 
     # -- results ----------------------------------------------------------------------
@@ -206,12 +207,13 @@ class Runtime:
             )
         future = self.waiting.pop(batch_id, None)
         if future is not None and not future.done():
+            error = result.get("error")
             future.set_result(
                 Outcome(
                     result.get("accepted", 0),
                     result.get("late", 0),
                     result.get("positions", []),
-                    result.get("error"),
+                    None if error is None else ProcessingFailed(f"processing failed: {error}"),
                 )
             )
 

@@ -11,8 +11,9 @@ weighted centroid.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from app.engine.centroid import CentroidParams, WeightedCentroid
 from app.engine.hmm.emission import EmissionModel
@@ -86,13 +87,41 @@ class SiteEngines:
         return self._hmm
 
 
+class BatchEngine(Protocol):
+    """An engine that positions several devices, one batch each, in one call."""
+
+    def process(self, batches: Mapping[str, Batch]) -> dict[str, list[Estimate]]:
+        """Consume one time-ordered batch per device; return each device's new estimates."""
+        ...
+
+
+class DeviceTracker(Tracker, Protocol):
+    """A device's filter as a shard holds it.
+
+    ``kind`` is stored with its snapshot to rebuild it. ``shared_engine`` is the
+    site engine the filter lives in, or None when the filter is the device's
+    own: devices sharing an engine are processed together, one engine call per
+    round of batches.
+    """
+
+    @property
+    def kind(self) -> str:
+        """Return the kind the filter was made as (see ``make_tracker``)."""
+        ...
+
+    @property
+    def shared_engine(self) -> BatchEngine | None:
+        """Return the engine this filter shares with other devices, if any."""
+        ...
+
+
 class EngineDevice:
-    """A device whose filter lives in a shared batched engine."""
+    """A device whose filter lives in the site's shared particle-filter engine."""
 
     kind = PF
 
     def __init__(self, engine: PositioningEngine, device_id: str, state: dict[str, Any] | None):
-        self.engine = engine
+        self.shared_engine: PositioningEngine = engine
         self.device_id = device_id
         if state is None:
             engine.add(device_id)
@@ -100,20 +129,49 @@ class EngineDevice:
             engine.restore(device_id, state)
 
     def process(self, batch: Batch) -> list[Estimate]:
-        """Process this device alone (the shard batches devices through the engine instead)."""
-        return self.engine.process({self.device_id: batch})[self.device_id]
+        """Process this device alone (a shard batches devices through the shared engine)."""
+        return self.shared_engine.process({self.device_id: batch})[self.device_id]
 
     def flush(self) -> list[Estimate]:
         """Position the last, incomplete window."""
-        return self.engine.flush([self.device_id])[self.device_id]
+        return self.shared_engine.flush([self.device_id])[self.device_id]
 
     def snapshot(self) -> dict[str, Any]:
         """Return the device's state in the engine."""
-        return self.engine.snapshot(self.device_id)
+        return self.shared_engine.snapshot(self.device_id)
 
     def close(self) -> None:
         """Free the device's filters in the engine."""
-        self.engine.remove(self.device_id)
+        self.shared_engine.remove(self.device_id)
+
+
+OwnFilter = UwbTracker | LocatorTracker | HmmTracker | WeightedCentroid
+"""The filters that are objects of their own, one per device."""
+
+
+class FilterDevice:
+    """A device whose filter is its own object (UWB, locator, HMM, centroid)."""
+
+    shared_engine: None = None
+
+    def __init__(self, kind: str, tracker: OwnFilter) -> None:
+        self.kind = kind
+        self.tracker = tracker
+
+    def process(self, batch: Batch) -> list[Estimate]:
+        """Consume one time-ordered batch and return the estimates it produced."""
+        return self.tracker.process(batch)
+
+    def flush(self) -> list[Estimate]:
+        """Return no estimates: these filters keep what they hold for the device's next batch."""
+        return []
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return the filter's state."""
+        return self.tracker.snapshot()
+
+    def close(self) -> None:
+        """Nothing to free: the filter holds nothing outside itself."""
 
 
 def choose_kind(site: LoadedSite, batch: Batch, kinds: set[str]) -> str:
@@ -150,7 +208,7 @@ def _hmm_state_fits(model: EmissionModel, state: dict[str, Any]) -> bool:
 
 def make_tracker(
     kind: str, engines: SiteEngines, device_id: str, state: dict[str, Any] | None
-) -> Tracker:
+) -> DeviceTracker:
     """Return the device's filter of ``kind``, fresh or restored from its state."""
     if kind == HMM and not engines.site.radio_maps:
         # restored as an HMM device on a site whose radio maps are gone
@@ -162,15 +220,11 @@ def make_tracker(
         if state is not None and not _hmm_state_fits(model, state):
             # the radio map was rebuilt: the old distribution has no meaning on the new points
             state = None
-        return HmmTracker(model, engines.hmm_params, state=state)
+        return FilterDevice(HMM, HmmTracker(model, engines.hmm_params, state=state))
     if kind == UWB:
-        return UwbTracker(engines.site.model, UwbTrackerParams(), state)
+        return FilterDevice(UWB, UwbTracker(engines.site.model, UwbTrackerParams(), state))
     if kind == LOCATOR:
-        return LocatorTracker(engines.site.model, LocatorTrackerParams(), state)
-    return WeightedCentroid(engines.site.model, CentroidParams(), state)
-
-
-def kind_of(tracker: Tracker) -> str:
-    """Return the kind a tracker was made as."""
-    kinds = {EngineDevice: PF, UwbTracker: UWB, LocatorTracker: LOCATOR, HmmTracker: HMM}
-    return kinds.get(type(tracker), CENTROID)
+        return FilterDevice(
+            LOCATOR, LocatorTracker(engines.site.model, LocatorTrackerParams(), state)
+        )
+    return FilterDevice(CENTROID, WeightedCentroid(engines.site.model, CentroidParams(), state))

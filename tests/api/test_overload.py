@@ -3,6 +3,7 @@ each device's newest batch (policy 'latest'), counting what it dropped; it recov
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 import time
@@ -24,7 +25,8 @@ ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
 @pytest.fixture(params=["reject", "latest"])
 def overload_client(
     request: pytest.FixtureRequest, database_url: str, tmp_path: Path
-) -> Iterator[tuple[TestClient, str]]:
+) -> Iterator[tuple[TestClient, str, int]]:
+    """The app with one worker process, its overload policy, and the worker's pid."""
     settings = Settings(
         database_url=database_url,
         home=tmp_path,
@@ -34,8 +36,10 @@ def overload_client(
         max_inflight_batches=100,
         overload_policy=request.param,
     )
+    before = set(multiprocessing.active_children())
     with TestClient(create_app(settings)) as client:
-        yield client, request.param
+        (worker,) = (p.pid for p in multiprocessing.active_children() if p not in before)
+        yield client, request.param, worker
 
 
 def _metric(client: TestClient, name: str) -> float:
@@ -46,13 +50,14 @@ def _metric(client: TestClient, name: str) -> float:
     return total
 
 
-def test_backlog_bound_holds_and_recovers(overload_client: tuple[TestClient, str]) -> None:
-    client, policy = overload_client
+def test_backlog_bound_holds_and_recovers(
+    overload_client: tuple[TestClient, str, int],
+) -> None:
+    client, policy, worker = overload_client
     site = f"ov-{uuid.uuid4().hex[:6]}"
     device = f"{site}-dev"
     client.put(f"/v1/sites/{site}", json={"name": site}, headers=ADMIN)
     client.put(f"/v1/sites/{site}/floors/G", json=floor_doc(), headers=ADMIN)
-    worker = client.app.state.locus.runtime.broker.worker_pids()[0]
     os.kill(worker, signal.SIGSTOP)  # the worker stalls: its backlog can only grow
     try:
         statuses = [

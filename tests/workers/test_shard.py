@@ -1,0 +1,202 @@
+"""A shard: messages routed to their devices, silence on its clock, and drain at hand-over."""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core.config import Settings
+from app.core.db import session_scope
+from app.sites.assembly import LoadedSite
+from app.workers import snapshots
+from app.workers.device import DeviceSession
+from app.workers.shard import Shard
+from app.workers.snapshot_store import DatabaseSnapshots
+from app.workers.trackers import PF, SiteEngines
+from tests.workers.conftest import SITE_ID
+from tests.workers.office import T0, Clock, Sample, ble_scans, per_second, uwb_ranges
+
+OTHER_ROUTE = np.array([(35.0, 10.0), (15.0, 10.0), (15.0, 16.0)])
+"""Along the corridor the other way, then up into a room."""
+
+
+@pytest.fixture
+def settings(office_url: str, tmp_path: Path) -> Settings:
+    return Settings(database_url=office_url, home=tmp_path, flush_after_s=2.5, idle_evict_s=60)
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def shard(settings: Settings, office_sessions: sessionmaker[Session], clock: Clock) -> Shard:
+    return Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
+
+
+def _id(name: str) -> str:
+    """Return a device id of its own for this test (the database is shared)."""
+    return f"{name}-{uuid.uuid4().hex[:8]}"
+
+
+def _message(office: LoadedSite, device_id: str, kind: str, samples: list[Sample]) -> dict:
+    return {
+        "type": "ingest",
+        "batch_id": uuid.uuid4().hex,
+        "site_id": SITE_ID,
+        "device_id": device_id,
+        "version": office.version,
+        "samples": {kind: samples},
+        "flush": False,
+    }
+
+
+def _positions(results: list[dict[str, Any]], device_id: str) -> list[dict[str, Any]]:
+    return [
+        {k: v for k, v in p.items() if k != "computed_at"}
+        for r in results
+        if r["device_id"] == device_id
+        for p in r.get("positions", ())
+    ]
+
+
+def _alone(engines: SiteEngines, device_id: str, kind: str, uploads: list[list[Sample]]) -> list:
+    """Return the positions of a device session fed ``uploads`` with no shard around it."""
+    session = DeviceSession(device_id=device_id, engines=engines, now=T0)
+    out = []
+    for samples in uploads:
+        session.add({kind: samples}, now=T0)
+        batch, _ = session.take(reorder_ms=2000, flush=False)
+        if batch is not None:
+            assert session.tracker is not None
+            out += session.emit(session.tracker.process(batch), now=T0)[0]
+    return [{k: v for k, v in p.items() if k != "computed_at"} for p in out]
+
+
+def test_interleaved_messages_reach_their_own_devices(
+    shard: Shard, office: LoadedSite, engines: SiteEngines
+) -> None:
+    walker, other = _id("walker"), _id("other")
+    mine = per_second(uwb_ranges(10))
+    theirs = per_second(uwb_ranges(10, OTHER_ROUTE))
+    results = []
+    for a, b in zip(mine, theirs, strict=True):
+        results += shard.handle(
+            [_message(office, walker, "uwb", a), _message(office, other, "uwb", b)]
+        )
+
+    assert set(shard.devices) == {walker, other}
+    assert [r["device_id"] for r in results] == [walker, other] * 10
+    assert _positions(results, walker) == _alone(engines, walker, "uwb", mine)
+    assert _positions(results, other) == _alone(engines, other, "uwb", theirs)
+
+
+def test_devices_sharing_the_particle_filter_get_the_positions_each_would_get_alone(
+    shard: Shard, office: LoadedSite
+) -> None:
+    walker, other = _id("walker"), _id("other")
+    mine = per_second(ble_scans(12))
+    theirs = per_second(ble_scans(12, OTHER_ROUTE, seed=2))
+    results = []
+    for a, b in zip(mine, theirs, strict=True):
+        results += shard.handle(
+            [_message(office, walker, "ble", a), _message(office, other, "ble", b)]
+        )
+
+    kinds = {d.tracker.kind for d in shard.devices.values() if d.tracker is not None}
+    assert kinds == {PF}
+    # each alone: in a particle-filter engine of its own
+    for device_id, uploads in ((walker, mine), (other, theirs)):
+        alone = _alone(SiteEngines.for_site(office), device_id, "ble", uploads)
+        assert len(alone) >= 9
+        assert _positions(results, device_id) == alone
+
+
+def test_silence_on_the_shard_clock_flushes_a_device_then_evicts_it(
+    shard: Shard, office: LoadedSite, clock: Clock, office_sessions: sessionmaker[Session]
+) -> None:
+    phone = _id("phone")
+    results = []
+    for samples in per_second(ble_scans(8)):
+        results += shard.handle([_message(office, phone, "ble", samples)])
+        clock.advance(1.0)
+    handled = _positions(results, phone)
+    device = shard.devices[phone]
+    assert device.buffer, "the newest samples wait in the reorder window"
+
+    clock.advance(2.4 - 1.0)  # 2.4 s after the last upload
+    assert shard.tick() == []
+    assert device.buffer
+
+    clock.advance(0.1)  # silent for flush_after_s
+    flushed = _positions(shard.tick(), phone)
+    assert not device.buffer and not device.pending
+    # one position per scan: those of the buffered scans, and the last scan's window,
+    # still open in the filter, through the filter's flush
+    assert [p["t"] for p in handled] == [T0 + 1000 * k + 90 for k in range(5)]
+    assert [p["t"] for p in flushed] == [T0 + 1000 * k + 90 for k in (5, 6, 7)]
+
+    pf = shard.engines[SITE_ID].pf
+    assert phone in pf.devices
+    clock.advance(60)  # silent for idle_evict_s
+    assert shard.tick() == []
+    assert phone not in shard.devices
+    assert phone not in pf.devices, "closing the device freed its slot in the shared engine"
+    with session_scope(office_sessions) as db:
+        stored = DatabaseSnapshots().load(db, phone)
+    assert stored is not None and stored[0] == SITE_ID
+
+
+def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_go(
+    shard: Shard, office: LoadedSite, office_sessions: sessionmaker[Session]
+) -> None:
+    tag, phone = _id("tag"), _id("phone")
+    ranges, scans = uwb_ranges(6), ble_scans(6)
+    for a, b in zip(per_second(ranges), per_second(scans), strict=True):
+        shard.handle([_message(office, tag, "uwb", a), _message(office, phone, "ble", b)])
+    assert all(d.buffer for d in shard.devices.values())
+
+    drained = shard.drain()
+
+    assert _positions(drained, tag) and _positions(drained, phone)
+    assert shard.devices == {}
+    assert phone not in shard.engines[SITE_ID].pf.devices
+    with session_scope(office_sessions) as db:
+        for device_id, last in ((tag, ranges[-1]["t"]), (phone, scans[-1]["t"])):
+            stored = DatabaseSnapshots().load(db, device_id)
+            assert stored is not None
+            state = snapshots.decode(stored[1])
+            assert state["processed_t"] == last
+            assert state["buffer"] == "[]" and not state["unflushed"]
+
+
+def test_the_next_shard_resumes_a_drained_device_from_its_snapshot(
+    settings: Settings,
+    office_sessions: sessionmaker[Session],
+    office: LoadedSite,
+    clock: Clock,
+) -> None:
+    tag = _id("tag")
+    uploads = per_second(uwb_ranges(12))
+    first = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
+    results = []
+    for samples in uploads[:6]:
+        results += first.handle([_message(office, tag, "uwb", samples)])
+    results += first.drain()
+
+    second = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
+    # the last upload is delivered again (at least once), then the walk goes on
+    for samples in uploads[5:]:
+        results += second.handle([_message(office, tag, "uwb", samples)])
+
+    assert second.counters["restored"] == 1
+    assert second.counters["late"] == len(uploads[5])
+    ts = [p["t"] for p in _positions(results, tag)]
+    assert ts == sorted(set(ts)), "no position is emitted twice"
+    assert ts[-1] >= uploads[-1][0]["t"] - 2000
