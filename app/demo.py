@@ -11,6 +11,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -60,7 +61,7 @@ def _emitters(doc: dict[str, Any], kind: str) -> list[dict[str, Any]]:
 class Walker:
     """A simulated person following a looping route at walking speed."""
 
-    def __init__(self, route: list[tuple[float, float]], speed: float) -> None:
+    def __init__(self, route: Sequence[tuple[float, float]], speed: float) -> None:
         self.points = np.array(route, dtype=float)
         legs = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         self.cumulative = np.concatenate([[0.0], np.cumsum(legs)])

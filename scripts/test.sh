@@ -10,6 +10,7 @@ python3 -m venv .venv
 .venv/bin/pip install --quiet -e '.[dev]'
 .venv/bin/ruff check app tests bench
 .venv/bin/ruff format --check app tests bench
+.venv/bin/mypy
 # The dashboard's browser test drives Debian's Chromium (Playwright downloads no browser).
 if ! command -v chromium >/dev/null; then
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \

@@ -69,7 +69,7 @@ class AccuracyMap:
     @property
     def shape(self) -> tuple[int, int]:
         """Grid shape (ny, nx)."""
-        return self.sigma_x.shape  # type: ignore[return-value]
+        return self.sigma_x.shape
 
     def centres(self) -> np.ndarray:
         """Return the cell centres, shape (ny, nx, 2) (m)."""

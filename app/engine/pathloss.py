@@ -302,7 +302,7 @@ def grid_log_likelihood(
     itype = np.int32 if grid.codes.size < 2**31 else np.intp
     cell = cells.ravel()[reps].astype(itype)
     index = tx.astype(itype)[row]
-    index += (cell * itype(n_tx))[:, None]
+    index += np.multiply(cell, n_tx, dtype=itype)[:, None]
     codes = grid.codes.reshape(-1).take(index)
     # s' = (s̄ - floor) / step: the reading in code units
     s_code = ((rssi - grid.floor_dbm) / step).astype(np.float32)

@@ -63,7 +63,7 @@ class FloorPlan:
     @property
     def shape(self) -> tuple[int, int]:
         """Raster shape (ny, nx)."""
-        return self.free.shape  # type: ignore[return-value]
+        return self.free.shape
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -101,7 +101,7 @@ class FloorPlan:
         frac = np.linspace(0.0, 1.0, steps + 1)
         # points[k, n] = start + frac_k (end - start)
         points = start[None] + frac[:, None, None] * (end - start)[None]
-        return self.is_free(points).all(axis=0)
+        return np.asarray(self.is_free(points).all(axis=0))
 
     def project(self, xy: np.ndarray) -> np.ndarray:
         """Move each point (..., 2) off blocked cells to the nearest free cell's centre."""

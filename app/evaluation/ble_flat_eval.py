@@ -60,8 +60,8 @@ def fit_anchors(track: ble_flat.Track, anchors: ble_flat.Anchors, *, shared: boo
     heard = np.isfinite(track.rssi)
     k = len(anchors.ids)
     if shared:
-        a, b, s = fit_pathloss(r[heard], track.rssi[heard], min_range)
-        return PathLoss(np.full(k, a), np.full(k, b), np.full(k, s), heard.sum(axis=0))
+        a0, b0, s0 = fit_pathloss(r[heard], track.rssi[heard], min_range)
+        return PathLoss(np.full(k, a0), np.full(k, b0), np.full(k, s0), heard.sum(axis=0))
     fits = [
         fit_pathloss(r[heard[:, j], j], track.rssi[heard[:, j], j], min_range) for j in range(k)
     ]

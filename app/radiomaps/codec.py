@@ -12,7 +12,7 @@ from app.engine.radiomap import RadioMap
 def encode_map(radio_map: RadioMap) -> bytes:
     """Serialise a radio map (its ``to_arrays()``) as compressed npz."""
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **radio_map.to_arrays())
+    np.savez_compressed(buffer, allow_pickle=False, **radio_map.to_arrays())
     return buffer.getvalue()
 
 

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 from fastapi import APIRouter
 
 from app.core.errors import Forbidden
 from app.keys.deps import PrincipalDep
 from app.state import SessionDep, StateDep
 from app.tracks import service
-from app.tracks.schemas import FittedPoint, TrackAccepted, TrackCreate, TrackRead
+from app.tracks.schemas import FittedPoint, TrackAccepted, TrackCreate, TrackRead, TrackStatus
 
 router = APIRouter(prefix="/v1/tracks", tags=["tracks"])
 
@@ -38,7 +40,7 @@ def get_track(principal: PrincipalDep, track_id: str, db: SessionDep) -> TrackRe
         device_id=track.device_id,
         site_id=track.site_id,
         floor_id=track.floor_id,
-        status=track.status,
+        status=cast(TrackStatus, track.status),
         points=points,
         score=track.score,
         elapsed_ms=track.elapsed_ms,

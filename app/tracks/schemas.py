@@ -14,6 +14,10 @@ Scale = Annotated[float, Field(gt=0.5, lt=2.0, allow_inf_nan=False)]
 TurnChange = Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)]
 
 
+TrackStatus = Literal["queued", "running", "done", "failed"]
+"""Where a track fit stands: queued, running, then done or failed."""
+
+
 class Point(BaseModel):
     """A point of the floor's local frame (m)."""
 
@@ -80,7 +84,7 @@ class TrackRead(BaseModel):
     device_id: str
     site_id: str
     floor_id: str
-    status: Literal["queued", "running", "done", "failed"]
+    status: TrackStatus
     points: list[FittedPoint] = Field(default_factory=list)
     score: float | None = None
     elapsed_ms: float | None = None

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol, cast
 
 from sqlalchemy.orm import Session
 
 from app.devices.models import DeviceStateRecord
+
+if TYPE_CHECKING:
+    from redis import Redis
 
 
 class SnapshotStore(Protocol):
@@ -41,13 +44,14 @@ class DatabaseSnapshots:
 class RedisSnapshots:
     """Snapshots in Redis hashes ``locus:snap:<device>``, shared by every worker node."""
 
-    def __init__(self, client, ttl_s: int = 7 * 24 * 3600) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, client: Redis, ttl_s: int = 7 * 24 * 3600) -> None:
         self.client = client
         self.ttl_s = ttl_s
 
     def load(self, db: Session, device_id: str) -> tuple[str, bytes] | None:
         """Return the device's snapshot from Redis."""
-        entry = self.client.hgetall(f"locus:snap:{device_id}")
+        # the client answers bytes (no decode_responses): the blob is binary
+        entry = cast(dict[bytes, bytes], self.client.hgetall(f"locus:snap:{device_id}"))
         if not entry:
             return None
         return entry[b"site"].decode(), entry[b"blob"]

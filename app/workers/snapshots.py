@@ -35,7 +35,7 @@ def encode(state: dict[str, Any]) -> bytes:
     flat: dict[str, np.ndarray] = {"__version__": np.asarray(FORMAT_VERSION)}
     _flatten("", state, flat)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **flat)
+    np.savez_compressed(buffer, allow_pickle=False, **flat)
     return buffer.getvalue()
 
 
