@@ -232,8 +232,8 @@ EVALUATIONS = {
     "uwb": "app.evaluation.uwb_eval",
     "locator": "app.evaluation.locator_eval",
     "locator-http": "app.evaluation.locator_http",
-    "ilc": "app.evaluation.ilc_eval",
-    "ilc-floor-change": "app.evaluation.ilc_floor_change",
+    "ilc": "app.evaluation.ilc.cli",
+    "ilc-floor-change": "app.evaluation.ilc.floor_change",
 }
 
 

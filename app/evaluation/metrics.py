@@ -1,4 +1,4 @@
-"""Accuracy figures shared by every evaluation: truth interpolation and error statistics."""
+"""Accuracy figures shared by every evaluation: truth, angle wrapping and error statistics."""
 
 from __future__ import annotations
 
@@ -15,6 +15,12 @@ def truth_at(waypoints: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarr
     wt = waypoints[:, 0]
     xy = np.stack([np.interp(t, wt, waypoints[:, 1]), np.interp(t, wt, waypoints[:, 2])], axis=-1)
     return xy, (t >= wt[0]) & (t <= wt[-1])
+
+
+def wrap_deg(a: np.ndarray | float) -> np.ndarray:
+    """Wrap angles (degrees) into [-180, 180), so heading differences compare across north."""
+    # ((a + 180) mod 360) - 180
+    return np.mod(np.asarray(a, dtype=float) + 180.0, 360.0) - 180.0
 
 
 def error_stats(errors: np.ndarray) -> dict[str, float]:

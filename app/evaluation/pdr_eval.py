@@ -12,118 +12,17 @@ Run ``python -m app.evaluation.pdr_eval`` (about a minute on one core).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from app.datasets import data_dir
-from app.datasets.ilc import imu_samples as walk_imu
 from app.datasets.ilc import read_walk, site_walks
-from app.engine.pdr import PdrParams, Steps, detect_steps
+from app.engine.pdr import PdrParams
+from app.evaluation.metrics import wrap_deg
+from app.evaluation.pdr_fit import MIN_SEGMENT_M, calibrate_k, heading_offset, measure_walks
 from app.evaluation.split import walk_split
-
-MIN_SEGMENT_M = 3.0
-
-
-@dataclass(frozen=True)
-class WalkPdr:
-    """PDR of one walk reduced to what the metrics need.
-
-    ``distance`` is the waypoint polyline length (m); ``stride_sum`` the sum of
-    swing^(1/4) of the steps between the first and last waypoint (Weinberg
-    length is K times it); ``n_steps`` those steps; ``duration_s`` the time
-    from first to last waypoint; ``segment_error`` the signed heading error
-    (degrees, PDR minus truth, in [-180, 180)) of each long enough segment.
-    """
-
-    walk_id: str
-    floor: str
-    distance: float
-    stride_sum: float
-    n_steps: int
-    duration_s: float
-    segment_error: np.ndarray
-
-
-def wrap_deg(a: np.ndarray | float) -> np.ndarray:
-    """Wrap angles (degrees) into [-180, 180)."""
-    # ((a + 180) mod 360) - 180
-    return np.mod(np.asarray(a, dtype=float) + 180.0, 360.0) - 180.0
-
-
-def circular_mean(deg: np.ndarray) -> float:
-    """Return the circular mean of angles in degrees, in [-180, 180); NaN for none."""
-    if deg.size == 0:
-        return float("nan")
-    r = np.radians(deg)
-    # θ̄ = atan2(Σ sin θ, Σ cos θ)
-    return float(wrap_deg(np.degrees(np.arctan2(np.sin(r).sum(), np.cos(r).sum()))))
-
-
-def walk_pdr(
-    walk_id: str,
-    floor: str,
-    waypoints: np.ndarray,
-    steps: Steps,
-    min_segment_m: float = MIN_SEGMENT_M,
-) -> WalkPdr:
-    """Compare one walk's steps with its waypoints (m, 3): t_ms, x, y."""
-    t_wp, xy = waypoints[:, 0], waypoints[:, 1:]
-    seg = np.diff(xy, axis=0)
-    # d_i = |p_{i+1} - p_i|
-    seg_len = np.hypot(seg[:, 0], seg[:, 1])
-    # φ_i = atan2(Δx, Δy): clockwise from +y
-    seg_dir = np.degrees(np.arctan2(seg[:, 0], seg[:, 1]))
-    inside = (steps.t > t_wp[0]) & (steps.t <= t_wp[-1])
-    errors = []
-    for i in np.flatnonzero(seg_len >= min_segment_m):
-        on = (steps.t > t_wp[i]) & (steps.t <= t_wp[i + 1]) & np.isfinite(steps.heading)
-        if on.any():
-            errors.append(wrap_deg(circular_mean(steps.heading[on]) - seg_dir[i]))
-    return WalkPdr(
-        walk_id=walk_id,
-        floor=floor,
-        distance=float(seg_len.sum()),
-        # Σ (a_max - a_min)^(1/4)
-        stride_sum=float(np.power(steps.swing[inside], 0.25).sum()),
-        n_steps=int(inside.sum()),
-        duration_s=float((t_wp[-1] - t_wp[0]) / 1000.0),
-        segment_error=np.array(errors, dtype=float),
-    )
-
-
-def run_walks(
-    walks: Iterable[tuple[str, Path]], params: PdrParams, *, rotation_vector: bool = True
-) -> list[WalkPdr]:
-    """Run PDR on each (floor, path) walk with at least two waypoints.
-
-    Without ``rotation_vector`` the rotation vector is withheld, so headings
-    come from the gyro + magnetometer complementary filter.
-    """
-    out = []
-    for floor, path in walks:
-        walk = read_walk(path, floor)
-        if walk.waypoints.shape[0] < 2 or walk.acc.shape[0] == 0:
-            continue
-        imu = walk_imu(walk)
-        if not rotation_vector:
-            imu.rot = np.full_like(imu.rot, np.nan)
-        steps = detect_steps(imu, params)
-        out.append(walk_pdr(walk.walk_id, floor, walk.waypoints, steps))
-    return out
-
-
-def calibrate_k(results: list[WalkPdr]) -> float:
-    """Return Weinberg's K fitting total step length to total walked distance."""
-    # K = Σ D_w / Σ_w Σ_steps (a_max - a_min)^(1/4)
-    return sum(r.distance for r in results) / sum(r.stride_sum for r in results)
-
-
-def heading_offset(results: list[WalkPdr]) -> float:
-    """Return the offset (degrees) to add to PDR headings: minus their mean segment error."""
-    return -circular_mean(np.concatenate([r.segment_error for r in results]))
 
 
 @dataclass(frozen=True)
@@ -150,7 +49,8 @@ def evaluate(
     """Calibrate on the train walks, measure on the test walks."""
     _, test_ids = walk_split([p.name.split(".")[0] for _, p in walks], test_fraction)
     test_set = set(test_ids)
-    results = run_walks(walks, params, rotation_vector=rotation_vector)
+    recordings = (read_walk(path, floor) for floor, path in walks)
+    results = measure_walks(recordings, params, rotation_vector=rotation_vector)
     train = [r for r in results if r.walk_id not in test_set]
     test = [r for r in results if r.walk_id in test_set]
     k = calibrate_k(train)

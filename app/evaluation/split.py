@@ -1,4 +1,4 @@
-"""Deterministic train/test split of recordings by walk id.
+"""Deterministic train, validation and test split of recordings by walk id.
 
 Samples of one walk are strongly correlated (same phone, same path, same
 minute), so splitting by sample leaks the test walks into training. The split
@@ -34,3 +34,20 @@ def walk_split(walk_ids: Iterable[str], test_fraction: float = 0.2) -> tuple[lis
     test = [w for w in ids if walk_unit(w) < test_fraction]
     train = [w for w in ids if walk_unit(w) >= test_fraction]
     return train, test
+
+
+def split_ids(
+    walk_ids: Iterable[str], test_fraction: float = 0.2, validation_fraction: float = 0.0
+) -> tuple[list[str], list[str], list[str]]:
+    """Split walk ids into (train, validation, test), each sorted.
+
+    Test is ``walk_split``'s; validation takes the training walks whose unit
+    lies in [test_fraction, test_fraction + validation_fraction), so tuning
+    never sees a test walk and a larger validation share only takes from
+    training.
+    """
+    train, test = walk_split(walk_ids, test_fraction)
+    upper = test_fraction + validation_fraction
+    validation = [w for w in train if walk_unit(w) < upper]
+    train = [w for w in train if walk_unit(w) >= upper]
+    return train, validation, test

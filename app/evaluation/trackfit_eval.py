@@ -33,7 +33,8 @@ from app.engine.pdr import detect_steps
 from app.engine.plan import FloorPlan
 from app.engine.trackfit.fit import TrackFitParams, fit_track
 from app.evaluation.metrics import truth_at
-from app.evaluation.split import walk_split, walk_unit
+from app.evaluation.plots import plan_figure
+from app.evaluation.split import split_ids
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
 
@@ -236,33 +237,21 @@ def plot_walk(
     title: str,
 ) -> None:
     """Draw the plan, the true, raw and fitted tracks into a PNG file."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    xmin, ymin, xmax, ymax = plan.bounds
-    fig, ax = plt.subplots(figsize=(9, 7))
-    ax.imshow(
-        plan.free, origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="Greys_r", vmin=-1, vmax=1
-    )
-    ax.plot(waypoints[:, 1], waypoints[:, 2], "o-", color="tab:green", ms=4, lw=2, label="truth")
-    ax.plot(raw.xy[:, 0], raw.xy[:, 1], "-", color="tab:red", lw=1, label="raw PDR")
-    ax.plot(fitted[:, 0], fitted[:, 1], "-", color="tab:blue", lw=1.5, label="fitted")
-    ax.plot(*raw.xy[0], "k*", ms=12)
-    every = np.vstack([waypoints[:, 1:], raw.xy, fitted])
-    lo, hi = every.min(axis=0) - 10.0, every.max(axis=0) + 10.0
-    ax.set_xlim(max(lo[0], xmin), min(hi[0], xmax))
-    ax.set_ylim(max(lo[1], ymin), min(hi[1], ymax))
-    ax.set_aspect("equal")
-    ax.set_title(title, fontsize=9)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    with plan_figure(path, plan, title, width_in=9.0) as ax:
+        ax.plot(
+            waypoints[:, 1], waypoints[:, 2], "o-", color="tab:green", ms=4, lw=2, label="truth"
+        )
+        ax.plot(raw.xy[:, 0], raw.xy[:, 1], "-", color="tab:red", lw=1, label="raw PDR")
+        ax.plot(fitted[:, 0], fitted[:, 1], "-", color="tab:blue", lw=1.5, label="fitted")
+        ax.plot(*raw.xy[0], "k*", ms=12)
+        xmin, ymin, xmax, ymax = plan.bounds
+        every = np.vstack([waypoints[:, 1:], raw.xy, fitted])
+        lo, hi = every.min(axis=0) - 10.0, every.max(axis=0) + 10.0
+        ax.set_xlim(max(lo[0], xmin), min(hi[0], xmax))
+        ax.set_ylim(max(lo[1], ymin), min(hi[1], ymax))
 
 
-def summarize(results: list[WalkResult]) -> str:
+def format_summary(results: list[WalkResult]) -> str:
     """Render per-mode figures over all test walks as a plain-text table."""
     lines = [
         f"{'links':<7} {'heading':<8} {'walks':>5} {'failed':>6} {'raw mean':>9} "
@@ -319,13 +308,10 @@ def main(argv: list[str] | None = None) -> None:
         time_limit_s=args.time_limit,
     )
     walks = site_walks(args.site)
-    train_ids, test_ids = walk_split([p.name.split(".")[0] for _, p in walks], args.test_fraction)
-    if args.split == "validation":
-        # the training walks whose hash unit lies in [test, test + validation)
-        upper = args.test_fraction + args.validation_fraction
-        test = {w for w in train_ids if walk_unit(w) < upper}
-    else:
-        test = set(test_ids)
+    _, validation_ids, test_ids = split_ids(
+        [p.name.split(".")[0] for _, p in walks], args.test_fraction, args.validation_fraction
+    )
+    test = set(validation_ids if args.split == "validation" else test_ids)
     plans: dict[str, FloorPlan] = {}
     if args.plots:
         args.plots.mkdir(parents=True, exist_ok=True)
@@ -376,7 +362,7 @@ def main(argv: list[str] | None = None) -> None:
                 wp,
                 raw,
                 tracks[("merged", "unknown")],
-                f"{floor} {walk_id}: raw {main_fit.raw.mean():.2f} m, fitted (merged links, "
+                f"{floor} {walk_id}\nraw {main_fit.raw.mean():.2f} m, fitted (merged links, "
                 f"heading unknown) {main_fit.fitted.mean():.2f} m"
                 + (f" — {main_fit.failed}" if main_fit.failed else ""),
             )
@@ -384,7 +370,7 @@ def main(argv: list[str] | None = None) -> None:
     print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
     print("relaxed: walks with a link placed by the fitter's recovery ladder; spread: how far")
     print("apart (m) the fits scoring within one Φ step of the best end (ambiguity)")
-    print(summarize(results))
+    print(format_summary(results))
 
 
 if __name__ == "__main__":

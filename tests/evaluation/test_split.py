@@ -7,7 +7,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from app.evaluation.split import walk_split, walk_unit
+from app.evaluation.split import split_ids, walk_split, walk_unit
 
 IDS = [f"5dd9{i:020x}" for i in range(2000)]
 
@@ -56,3 +56,15 @@ def test_units_are_uniform() -> None:
 def test_split_rejects_fractions_outside_the_unit_interval(fraction: float) -> None:
     with pytest.raises(ValueError, match="test_fraction"):
         walk_split(IDS, fraction)
+
+
+def test_split_puts_no_walk_on_two_sides_and_test_is_walk_splits() -> None:
+    train, validation, test = split_ids(IDS[:600], 0.2, 0.1)
+    assert not set(train) & set(test)
+    assert not set(train) & set(validation)
+    assert not set(validation) & set(test)
+    assert sorted(train + validation + test) == sorted(IDS[:600])
+    assert test == walk_split(IDS[:600], 0.2)[1]
+    # validation only takes walks out of training
+    train0, _, test0 = split_ids(IDS[:600], 0.2, 0.0)
+    assert test0 == test and set(train0) == set(train) | set(validation)

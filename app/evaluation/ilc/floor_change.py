@@ -16,31 +16,24 @@ scan to the first estimate on B's floor ("after scan"); the share of
 estimates on a wrong floor before the change; and the share off B's floor
 after the first estimate on it (flicker back).
 
-Run ``locus eval ilc-floor-change`` or ``python -m app.evaluation.ilc_floor_change``.
+Run ``locus eval ilc-floor-change`` or ``python -m app.evaluation.ilc.floor_change``.
 """
 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.datasets import data_dir
 from app.datasets.ilc import Walk
-from app.engine.positioning import PositioningEngine, seed_from_id
 from app.engine.samples import Batch, Estimate
-from app.evaluation.ilc_eval import (
-    Learned,
-    add_split_arguments,
-    pf_evidence,
-    pf_models,
-    pf_positioning_params,
-    remap,
-    split_and_learn,
-)
-from app.evaluation.site1 import SiteData, walk_batches
+from app.evaluation.ilc.experiment import add_split_arguments, prepare_experiment
+from app.evaluation.ilc.learn import Learned, remap
+from app.evaluation.ilc.methods import PARTICLE_FILTERS, pf_engine
+from app.evaluation.ilc.recordings import SiteRecordings, walk_batches
+from app.evaluation.ilc.replay import replay_devices
 
 WINDOW_MS = 1000
 """Batch length (ms) of the replay, the engine's positioning window."""
@@ -78,7 +71,7 @@ class Joined:
     floor_b: int
 
 
-def join(site: SiteData, a: Walk, b: Walk) -> Joined:
+def join(site: SiteRecordings, a: Walk, b: Walk) -> Joined:
     """Concatenate the batches of ``a`` and ``b``, B shifted to start one window after A ends."""
     first = list(walk_batches(site, a, WINDOW_MS))
     second = list(walk_batches(site, b, WINDOW_MS))
@@ -104,31 +97,12 @@ def replay_joined(
     learned: Learned, joined: Sequence[Joined], name: str
 ) -> dict[str, list[Estimate]]:
     """Replay the joined walks as devices of one engine; return each device's estimates."""
-    params = pf_positioning_params(name, learned)
-    engine = PositioningEngine(
-        learned.pf_site,
-        params,
-        pf_models(name, learned, params),
-        pf_evidence(name, learned, params),
+    result = replay_devices(
+        pf_engine(name, learned),
+        {j.device_id: iter(j.batches) for j in joined},
+        transform=lambda b: remap(b, learned.pf_lookup),
     )
-    streams: dict[str, Iterator[Batch]] = {}
-    for j in joined:
-        engine.add(j.device_id, seed_from_id(j.device_id))
-        streams[j.device_id] = iter(j.batches)
-    out: dict[str, list[Estimate]] = {j.device_id: [] for j in joined}
-    while streams:
-        due = {}
-        for device_id, stream in list(streams.items()):
-            batch = next(stream, None)
-            if batch is None:
-                del streams[device_id]
-                out[device_id].extend(engine.flush([device_id])[device_id])
-                engine.remove(device_id)
-            else:
-                due[device_id] = remap(batch, learned.pf_lookup)
-        for device_id, estimates in engine.process(due).items():
-            out[device_id].extend(estimates)
-    return out
+    return result.estimates
 
 
 @dataclass(frozen=True)
@@ -192,21 +166,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     add_split_arguments(parser, "join its walks instead of the test walks")
     parser.add_argument("--limit", type=int, help="at most this many pairs")
     parser.add_argument(
-        "--methods", nargs="+", default=["pf", "pf-radiomap"], choices=["pf", "pf-radiomap"]
+        "--methods", nargs="+", default=list(PARTICLE_FILTERS), choices=PARTICLE_FILTERS
     )
     args = parser.parse_args(argv)
-    site_dir = args.site or data_dir() / "ilc" / "site1"
-    site, learned, _, validation, test = split_and_learn(site_dir, args)
-    held_out = set(validation if args.validation_fraction > 0 else test)
-    walks = [w for w in site.walks if w.walk_id in held_out and w.waypoints.shape[0] >= 2]
-    pairs = pair_walks(walks)[: args.limit]
-    joined = [join(site, a, b) for a, b in pairs]
-    print(
-        f"site1: {len(pairs)} pairs of held-out "
-        f"{'validation' if args.validation_fraction > 0 else 'test'} walks on different floors"
-    )
+    exp = prepare_experiment(args)
+    pairs = pair_walks(exp.held_out_walks())[: args.limit]
+    joined = [join(exp.site, a, b) for a, b in pairs]
+    print(f"site1: {len(pairs)} pairs of held-out {exp.held_out_kind} walks on different floors")
     for name in args.methods:
-        estimates = replay_joined(learned, joined, name)
+        estimates = replay_joined(exp.learned, joined, name)
         lat = [latency(j, estimates[j.device_id]) for j in joined]
         first = np.array([x.first_s for x in lat])
         settled = np.array([x.settled_s for x in lat])

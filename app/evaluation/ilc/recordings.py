@@ -1,4 +1,4 @@
-"""The ILC site1 recordings as engine inputs: floors, transmitter table, surveys, batches.
+"""An ILC site's recordings as engine inputs: floors, transmitter table, surveys, batches.
 
 Everything an evaluation of radio-map based positioning needs from the mall:
 the floors in level order with their walkable rasters, a transmitter table
@@ -18,9 +18,8 @@ import numpy as np
 
 from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_walk, site_walks
 from app.engine.plan import FloorPlan
-from app.engine.radiomap import Survey, interpolate_waypoints, locate_scans
+from app.engine.radiomap import Survey, locate_scans
 from app.engine.samples import Batch, ImuSamples, RssiReadings
-from app.evaluation.split import walk_split, walk_unit
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
 
@@ -34,7 +33,7 @@ MAX_WIFI_AGE_MS = 2000
 
 
 @dataclass(frozen=True)
-class SiteData:
+class SiteRecordings:
     """A site's walks and floors, with WiFi readings mapped to transmitter indices.
 
     ``floors`` are floor names in level order (their position is the floor
@@ -64,7 +63,9 @@ class SiteData:
         )
 
 
-def load_site(site_dir: Path, *, train_ids: Iterable[str] | None = None) -> SiteData:
+def read_site_recordings(
+    site_dir: Path, *, train_ids: Iterable[str] | None = None
+) -> SiteRecordings:
     """Read every walk and floor of an ILC site.
 
     The transmitter table holds the BSSIDs heard (fresh) on the walks of
@@ -83,27 +84,12 @@ def load_site(site_dir: Path, *, train_ids: Iterable[str] | None = None) -> Site
     for walk in walks:
         if chosen is None or walk.walk_id in chosen:
             bssids.update(fresh_wifi(walk.wifi, MAX_WIFI_AGE_MS).bssid.tolist())
-    return SiteData(floors=tuple(names), plans=plans, walks=walks, tx_ids=tuple(sorted(bssids)))
+    return SiteRecordings(
+        floors=tuple(names), plans=plans, walks=walks, tx_ids=tuple(sorted(bssids))
+    )
 
 
-def split_ids(
-    walks: Iterable[Walk], test_fraction: float = 0.2, validation_fraction: float = 0.0
-) -> tuple[list[str], list[str], list[str]]:
-    """Return (train, validation, test) walk ids.
-
-    Test is ``walk_split``'s; validation takes the walks whose hash unit lies
-    in [test_fraction, test_fraction + validation_fraction), so tuning never
-    sees a test walk.
-    """
-    ids = [w.walk_id for w in walks]
-    train, test = walk_split(ids, test_fraction)
-    upper = test_fraction + validation_fraction
-    validation = [w for w in train if walk_unit(w) < upper]
-    train = [w for w in train if walk_unit(w) >= upper]
-    return train, validation, test
-
-
-def survey(site: SiteData, walk_ids: Iterable[str]) -> Survey:
+def survey_of(site: SiteRecordings, walk_ids: Iterable[str]) -> Survey:
     """Return the located scans of the chosen walks (walk numbers are positions in ``walks``)."""
     chosen = set(walk_ids)
     parts = [
@@ -114,7 +100,7 @@ def survey(site: SiteData, walk_ids: Iterable[str]) -> Survey:
     return Survey.concat(parts)
 
 
-def walk_batches(site: SiteData, walk: Walk, window_ms: int = 1000) -> Iterator[Batch]:
+def walk_batches(site: SiteRecordings, walk: Walk, window_ms: int = 1000) -> Iterator[Batch]:
     """Replay a walk as the consecutive batches of ``window_ms`` a phone would upload."""
     readings = site.readings(walk)
     imu = imu_samples(walk)
@@ -134,8 +120,3 @@ def walk_batches(site: SiteData, walk: Walk, window_ms: int = 1000) -> Iterator[
                 t=imu.t[i], acc=imu.acc[i], gyro=imu.gyro[i], mag=imu.mag[i], rot=imu.rot[i]
             ),
         )
-
-
-def truth(walk: Walk, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return the surveyed position (n, 2) at times ``t`` and whether each is within the span."""
-    return interpolate_waypoints(np.asarray(t, dtype=np.int64), walk.waypoints)
