@@ -67,16 +67,21 @@ class LocatorTrackerParams:
 
 
 def window_means(
-    t: np.ndarray, tx: np.ndarray, rssi: np.ndarray, n_tx: int, times: np.ndarray, window_ms: int
+    t: np.ndarray,
+    locator: np.ndarray,
+    rssi: np.ndarray,
+    n_locators: int,
+    times: np.ndarray,
+    window_ms: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Return mean RSSI (F, K) and reading counts (F, K) over (τ − window, τ] at each time τ.
+    """Return mean RSSI (F, K) and sighting counts (F, K) over (τ − window, τ] at each time τ.
 
-    ``t`` must be sorted; means are NaN where a transmitter was not heard.
+    ``t`` must be sorted; means are NaN where a locator did not hear the tag.
     """
-    onehot = np.zeros((t.size + 1, n_tx))
-    counts = np.zeros((t.size + 1, n_tx))
-    onehot[np.arange(1, t.size + 1), tx] = rssi
-    counts[np.arange(1, t.size + 1), tx] = 1.0
+    onehot = np.zeros((t.size + 1, n_locators))
+    counts = np.zeros((t.size + 1, n_locators))
+    onehot[np.arange(1, t.size + 1), locator] = rssi
+    counts[np.arange(1, t.size + 1), locator] = 1.0
     # prefix sums: C[i] = Σ_{j < i} readings
     C = np.cumsum(onehot, axis=0)
     N = np.cumsum(counts, axis=0)
@@ -101,7 +106,7 @@ def strongest_centroid(mean: np.ndarray, xyz: np.ndarray, k: int = 3) -> np.ndar
 class LocatorTracker:
     """A tag heard by fixed locators: windowed RSSI least squares, then the EKF on motion.
 
-    ``batch.rssi.tx`` indexes ``site.locators``, whose ``A``, ``B``, ``sigma``
+    ``batch.sightings.locator`` indexes ``site.locators``, whose ``A``, ``B``, ``sigma``
     describe the tag-to-locator path loss.
     """
 
@@ -118,7 +123,7 @@ class LocatorTracker:
         state = state or {}
         self.ekf = PositionEkf(params.ekf, state.get("ekf"))
         self.t = np.asarray(state.get("t", np.zeros(0, np.int64)), dtype=np.int64)
-        self.tx = np.asarray(state.get("tx", np.zeros(0, np.int32)), dtype=np.int32)
+        self.locator = np.asarray(state.get("locator", np.zeros(0, np.int32)), dtype=np.int32)
         self.rssi = np.asarray(state.get("rssi", np.zeros(0)), dtype=float)
         self.next_fix = int(state.get("next_fix", -1))
         self.floor = int(state.get("floor", 0))
@@ -141,7 +146,7 @@ class LocatorTracker:
         return {
             "ekf": self.ekf.snapshot(),
             "t": self.t.copy(),
-            "tx": self.tx.copy(),
+            "locator": self.locator.copy(),
             "rssi": self.rssi.copy(),
             "next_fix": self.next_fix,
             "floor": self.floor,
@@ -150,12 +155,12 @@ class LocatorTracker:
     def process(self, batch: Batch) -> list[Estimate]:
         """Consume one batch of sightings (and gyro, if any) and return the estimates."""
         p = self.params
-        r = batch.rssi
-        if len(r):
-            order = np.argsort(r.t, kind="stable")
-            self.t = np.concatenate([self.t, r.t[order]])
-            self.tx = np.concatenate([self.tx, r.tx[order]])
-            self.rssi = np.concatenate([self.rssi, r.rssi[order]])
+        s = batch.sightings
+        if len(s):
+            order = np.argsort(s.t, kind="stable")
+            self.t = np.concatenate([self.t, s.t[order]])
+            self.locator = np.concatenate([self.locator, s.locator[order]])
+            self.rssi = np.concatenate([self.rssi, s.rssi[order]])
         events = gyro_events(batch)
         if self.t.size:
             if self.next_fix < 0:
@@ -168,7 +173,7 @@ class LocatorTracker:
                 for tau, result in zip(times, self._fixes(times), strict=True):
                     events.append((int(tau), 1, result))
             keep = self.t > last - p.window_ms
-            self.t, self.tx, self.rssi = self.t[keep], self.tx[keep], self.rssi[keep]
+            self.t, self.locator, self.rssi = self.t[keep], self.locator[keep], self.rssi[keep]
         events.sort(key=lambda e: (e[0], e[1]))
         out: list[Estimate] = []
         for t, kind, payload in events:
@@ -194,7 +199,7 @@ class LocatorTracker:
         p = self.params
         loc = self.site.locators
         xyz = np.asarray(loc.xyz, dtype=float)
-        mean, count = window_means(self.t, self.tx, self.rssi, len(loc), times, p.window_ms)
+        mean, count = window_means(self.t, self.locator, self.rssi, len(loc), times, p.window_ms)
         floors = np.asarray(loc.floor)
         heard_floor = [
             int(np.bincount(floors[np.isfinite(row)]).argmax()) if np.isfinite(row).any() else 0

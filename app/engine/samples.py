@@ -18,7 +18,7 @@ def _empty(shape: tuple[int, ...] = (0,), dtype: type = float) -> np.ndarray:
 
 @dataclass
 class RssiReadings:
-    """Received signal strengths of known transmitters (WiFi, BLE, locators).
+    """Received signal strengths of known transmitters (WiFi, BLE) heard by the device.
 
     ``tx`` indexes ``SiteModel.transmitters``; readings of unknown ids are
     dropped (and counted) before they get here.
@@ -30,6 +30,23 @@ class RssiReadings:
 
     def __len__(self) -> int:
         """Return the number of readings."""
+        return int(self.t.size)
+
+
+@dataclass
+class Sightings:
+    """Signal strengths of a tag as heard by fixed locators (locator mode).
+
+    ``locator`` indexes ``SiteModel.locators``: here the receiver is the fixed
+    point and the tag the unknown, the reverse of :class:`RssiReadings`.
+    """
+
+    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
+    locator: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
+    rssi: np.ndarray = field(default_factory=_empty)
+
+    def __len__(self) -> int:
+        """Return the number of sightings."""
         return int(self.t.size)
 
 
@@ -93,6 +110,7 @@ class Batch:
     """Everything one device reported in one window of measurement time."""
 
     rssi: RssiReadings = field(default_factory=RssiReadings)
+    sightings: Sightings = field(default_factory=Sightings)
     imu: ImuSamples = field(default_factory=ImuSamples)
     ranges: Ranges = field(default_factory=Ranges)
     fixes: Fixes = field(default_factory=Fixes)
@@ -101,7 +119,12 @@ class Batch:
     def __len__(self) -> int:
         """Return the number of samples of every kind together."""
         return (
-            len(self.rssi) + len(self.imu) + len(self.ranges) + len(self.fixes) + len(self.pressure)
+            len(self.rssi)
+            + len(self.sightings)
+            + len(self.imu)
+            + len(self.ranges)
+            + len(self.fixes)
+            + len(self.pressure)
         )
 
 

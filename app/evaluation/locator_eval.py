@@ -41,7 +41,7 @@ from app.engine.locator_tracker import (
     strongest_centroid,
     window_means,
 )
-from app.engine.samples import Batch, RssiReadings
+from app.engine.samples import Batch, Sightings
 from app.engine.site import SiteModel
 
 BATCH_MS = 1000
@@ -144,8 +144,8 @@ def run_tracker(
     edges = np.arange(track.t[0], track.t[-1] + BATCH_MS, BATCH_MS)
     cut = np.searchsorted(track.t, edges)
     for a, b in zip(cut[:-1], cut[1:], strict=True):
-        readings = RssiReadings(t=track.t[a:b], tx=track.locator[a:b], rssi=track.rssi[a:b])
-        for est in tracker.process(Batch(rssi=readings)):
+        seen = Sightings(t=track.t[a:b], locator=track.locator[a:b], rssi=track.rssi[a:b])
+        for est in tracker.process(Batch(sightings=seen)):
             t_out.append(est.t)
             xy.append((est.x, est.y))
             acc.append(est.accuracy)

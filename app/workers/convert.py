@@ -6,7 +6,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from app.engine.samples import Batch, Fixes, ImuSamples, Pressure, Ranges, RssiReadings
+from app.engine.samples import Batch, Fixes, ImuSamples, Pressure, Ranges, RssiReadings, Sightings
 from app.sites.assembly import LoadedSite
 from app.sites.radio_ids import radio_id
 
@@ -29,14 +29,17 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
             t_rssi.append(s["t"])
             tx.append(row)
             rssi.append(s["rssi"])
+    t_seen: list[int] = []
+    locator: list[int] = []
+    seen_rssi: list[float] = []
     for s in samples.get("sightings", ()):
         row = site.locator_index.get(s["locator_id"])
         if row is None:
             unknown += 1
             continue
-        t_rssi.append(s["t"])
-        tx.append(row)
-        rssi.append(s["rssi"])
+        t_seen.append(s["t"])
+        locator.append(row)
+        seen_rssi.append(s["rssi"])
     imu = samples.get("imu", ())
     ranges_t: list[int] = []
     anchor: list[int] = []
@@ -61,6 +64,13 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
     batch = Batch(
         rssi=_sorted(
             RssiReadings(np.array(t_rssi, np.int64), np.array(tx, np.int32), np.array(rssi, float))
+        ),
+        sightings=_sorted(
+            Sightings(
+                np.array(t_seen, np.int64),
+                np.array(locator, np.int32),
+                np.array(seen_rssi, float),
+            )
         ),
         imu=_sorted(
             ImuSamples(

@@ -55,7 +55,7 @@ def turning_walk(seed: int, seconds: float = 120.0, dt: float = 0.02, speed: flo
 
 
 def slice_batch(lo: int, hi: int, **parts) -> Batch:
-    """Samples with lo <= t < hi of each part (Fixes, ImuSamples, Ranges, RssiReadings)."""
+    """Samples with lo <= t < hi of each part (Fixes, ImuSamples, Ranges, Sightings, ...)."""
     out = {}
     for name, arr in parts.items():
         sel = (arr.t >= lo) & (arr.t < hi)

@@ -12,7 +12,7 @@ from app.engine.locator_tracker import (
     strongest_centroid,
     window_means,
 )
-from app.engine.samples import RssiReadings
+from app.engine.samples import Sightings
 from app.workers.snapshots import decode, encode
 from tests.engine.tag_sim import room_walk, run, site_with
 
@@ -46,14 +46,14 @@ def test_locator_tracker_follows_a_simulated_tag() -> None:
     pos = np.column_stack([xy[idx], np.full(idx.size, 1.0)])
     d = np.linalg.norm(pos[:, None] - loc.xyz[None], axis=-1)
     rssi = loc.A - loc.B * np.log(d) + rng.normal(0, 4.0, d.shape)
-    readings = RssiReadings(
+    readings = Sightings(
         t=np.repeat(t[idx], 8) + np.tile(np.arange(8), idx.size),
-        tx=np.tile(np.arange(8, dtype=np.int32), idx.size),
+        locator=np.tile(np.arange(8, dtype=np.int32), idx.size),
         rssi=rssi.ravel(),
     )
     params = LocatorTrackerParams(tag_height_m=1.0, fix_std_floor_m=0.3)
     tracker = LocatorTracker(site, params)
-    out = run(tracker, int(t[-1]), rssi=readings)
+    out = run(tracker, int(t[-1]), sightings=readings)
     et = np.array([e.t for e in out])
     assert np.all(et % params.step_ms == 0) and et.size > 0.9 * 60_000 / params.step_ms
 
@@ -61,7 +61,7 @@ def test_locator_tracker_follows_a_simulated_tag() -> None:
         truth = np.column_stack([np.interp(times, t, xy[:, 0]), np.interp(times, t, xy[:, 1])])
         return float(np.sqrt(np.mean(np.sum((est - truth) ** 2, axis=1))))
 
-    mean, count = window_means(readings.t, readings.tx, readings.rssi, 8, et, params.window_ms)
+    mean, count = window_means(readings.t, readings.locator, readings.rssi, 8, et, params.window_ms)
     x0 = strongest_centroid(mean, loc.xyz)
     x0[:, 2] = 1.0
     raw = solve(
