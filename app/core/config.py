@@ -160,6 +160,24 @@ class Settings(BaseSettings):
         le=7 * 24 * 3600,
         description="Wall seconds of silence after which a device is snapshotted and evicted.",
     )
+    silence_scan_every_ms: int = Field(
+        default=100,
+        ge=1,
+        le=60_000,
+        description="Wall ms between a shard's scans for silent devices to flush or evict.",
+    )
+    worker_max_messages: int = Field(
+        default=500,
+        ge=1,
+        le=100_000,
+        description="At most this many queued messages a worker takes in one round.",
+    )
+    worker_stats_every_s: float = Field(
+        default=1.0,
+        gt=0,
+        le=3600,
+        description="Wall seconds between a worker's reports of its counters and queue depth.",
+    )
     snapshot_every_ms: int = Field(
         default=10_000,
         ge=0,

@@ -17,16 +17,14 @@ from app.workers.shard import Shard
 log = logging.getLogger(__name__)
 
 STOP = {"type": "stop"}
-MAX_DRAIN = 500
-STATS_EVERY_S = 1.0
 
 
-def _drain(inbox: Any, timeout: float) -> list[dict[str, Any]]:
+def _drain(inbox: Any, timeout: float, most: int) -> list[dict[str, Any]]:
     try:
         messages = [inbox.get(timeout=timeout)]
     except queue.Empty:
         return []
-    while len(messages) < MAX_DRAIN:
+    while len(messages) < most:
         try:
             messages.append(inbox.get_nowait())
         except queue.Empty:
@@ -77,7 +75,7 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
     outbox.put([{"type": "ready", "shard": shard_id}])
     last_stats = 0.0
     while not stopping:
-        messages = _drain(inbox, timeout=0.05)
+        messages = _drain(inbox, timeout=0.05, most=settings.worker_max_messages)
         if any(m.get("type") == "stop" for m in messages):
             stopping = True
             messages = [m for m in messages if m.get("type") != "stop"]
@@ -86,7 +84,7 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
         emitted = shard.tick()
         if emitted:
             outbox.put(emitted)
-        if time.monotonic() - last_stats >= STATS_EVERY_S:
+        if time.monotonic() - last_stats >= settings.worker_stats_every_s:
             outbox.put([shard.stats()])
             last_stats = time.monotonic()
     outbox.put(shard.drain() + [shard.stats()])

@@ -34,10 +34,6 @@ Message = dict[str, Any]
 Clock = Callable[[], int]
 """The wall clock in epoch milliseconds."""
 
-SCAN_EVERY_MS = 100
-"""Quiet and idle devices are looked for at most this often: the scan visits every
-device, and the worker loop calls ``tick`` after each group of messages."""
-
 
 class Shard:
     """Owns the devices of one shard and processes their batches in arrival order.
@@ -234,11 +230,13 @@ class Shard:
     def tick(self) -> list[Message]:
         """Flush quiet devices' buffers and filters; evict idle devices (with a snapshot).
 
-        Does nothing within ``SCAN_EVERY_MS`` of the last scan, unless buffers are
+        Does nothing within ``silence_scan_every_ms`` of the last scan, unless buffers are
         to be flushed at once (``flush_after_s`` 0).
         """
         now = self.clock()
-        if self.settings.flush_after_s > 0 and now - self._scanned_at < SCAN_EVERY_MS:
+        # the scan visits every device, and the worker loop calls tick after each round
+        recently = now - self._scanned_at < self.settings.silence_scan_every_ms
+        if self.settings.flush_after_s > 0 and recently:
             return []
         self._scanned_at = now
         flush_ms = self.settings.flush_after_s * 1000
