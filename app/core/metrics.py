@@ -20,6 +20,12 @@ class Metrics:
         self.ingest_samples = Counter(
             "locus_ingest_samples", "Samples accepted by ingest", ["kind"], registry=r
         )
+        self.ingest_dropped = Counter(
+            "locus_ingest_dropped_samples",
+            "Samples (or their optional fields) dropped for an impossible value",
+            ["kind", "reason"],
+            registry=r,
+        )
         self.ingest_rejected = Counter(
             "locus_ingest_rejected_requests", "Ingest requests rejected", ["reason"], registry=r
         )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Generic, TypeVar
+from typing import Annotated, Generic, Literal, TypeVar
 
 from fastapi import Path, Query
 from pydantic import BaseModel, StringConstraints
@@ -28,3 +28,14 @@ class Page(BaseModel, Generic[T]):
     total: int
     limit: int
     offset: int
+
+
+class DroppedSample(BaseModel):
+    """A sample, or only its optional field, left out for an impossible value."""
+
+    kind: str
+    index: int
+    field: str
+    code: str
+    reason: str
+    dropped: Literal["sample", "field"]

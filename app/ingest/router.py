@@ -10,9 +10,17 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 
 from app.core.errors import ApiError, DomainError, Invalid, TooLarge, error_body, validation_details
+from app.core.metrics import Metrics
 from app.core.openapi import json_body
+from app.core.sample_policy import report, validate_screened
 from app.ingest import flows
-from app.ingest.schemas import IngestAccepted, IngestBatch, IngestProcessed, LocatorBatch
+from app.ingest.schemas import (
+    SAMPLE_MODELS,
+    IngestAccepted,
+    IngestBatch,
+    IngestProcessed,
+    LocatorBatch,
+)
 from app.keys.deps import PrincipalDep, websocket_principal
 from app.state import RuntimeDep, StateDep, app_state
 
@@ -41,6 +49,19 @@ def _parse(model: type[M], raw: bytes | str) -> M:
         ) from exc
 
 
+def _parse_batch(raw: bytes | str, metrics: Metrics) -> tuple[IngestBatch, dict[str, Any]]:
+    """Validate a device's batch under the per-sample policy; count and report the drops."""
+    try:
+        batch, drops = validate_screened(IngestBatch, raw, SAMPLE_MODELS)
+    except ValidationError as exc:
+        raise Invalid(
+            "request failed validation", details=validation_details(exc.errors(include_url=False))
+        ) from exc
+    for drop in drops:
+        metrics.ingest_dropped.labels(drop["kind"], drop["code"]).inc()
+    return batch, report(drops)
+
+
 def _answer(result: dict[str, Any], wait: bool) -> JSONResponse:
     return JSONResponse(result, status_code=200 if wait else 202)
 
@@ -60,7 +81,7 @@ async def ingest(
 ) -> JSONResponse:
     """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
     raw = await _read_body(request, state.settings.max_body_bytes)
-    batch = _parse(IngestBatch, raw)
+    batch, dropped = _parse_batch(raw, state.metrics)
     result = await flows.ingest_batch(
         batch=batch,
         principal=principal,
@@ -70,7 +91,7 @@ async def ingest(
         wait=wait,
     )
     state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
-    return _answer(result, wait)
+    return _answer(result | dropped, wait)
 
 
 @router.post("/ingest/locator", status_code=202, response_model=IngestAccepted | IngestProcessed)
@@ -119,7 +140,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                 await websocket.send_json(error_body("payload_too_large", "message too large"))
                 continue
             try:
-                batch = _parse(IngestBatch, raw)
+                batch, dropped = _parse_batch(raw, state.metrics)
                 result = await flows.ingest_batch(
                     batch=batch,
                     principal=principal,
@@ -129,7 +150,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                     wait=wait,
                 )
                 state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
-                await websocket.send_text(json.dumps(result))
+                await websocket.send_text(json.dumps(result | dropped))
             except (ApiError, DomainError) as exc:
                 await websocket.send_json(
                     error_body(exc.code, exc.message, exc.details) | {"status": exc.status}

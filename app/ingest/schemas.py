@@ -10,14 +10,14 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
 
-from app.core.schemas import DeviceIdentifier, Identifier
+from app.core.schemas import DeviceIdentifier, DroppedSample, Identifier
 from app.positions.schemas import Position
 
 # 2000-01-01 in ms: anything earlier is a device clock that was never set.
 MIN_T_MS = 946_684_800_000
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
-Rssi = Annotated[float, Field(ge=-150, le=20, allow_inf_nan=False)]
+Rssi = Annotated[float, Field(ge=-150, le=0, allow_inf_nan=False)]
 Time = Annotated[StrictInt, Field(ge=MIN_T_MS, le=2**53)]
 TxId = Annotated[str, Field(min_length=1, max_length=100)]
 
@@ -34,7 +34,7 @@ class RadioSample(_Sample):
     id: TxId
     rssi: Rssi
     freq: Annotated[int, Field(ge=0, le=100_000)] | None = None
-    tx_power: Annotated[float, Field(ge=-150, le=50, allow_inf_nan=False)] | None = None
+    tx_power: Annotated[float, Field(ge=-127, le=20, allow_inf_nan=False)] | None = None
 
 
 class ImuSample(_Sample):
@@ -107,6 +107,15 @@ class IngestBatch(BaseModel):
 
 
 SAMPLE_KINDS = ("wifi", "ble", "imu", "uwb", "uwb_fix", "baro")
+SAMPLE_MODELS: dict[str, type[BaseModel]] = {
+    "wifi": RadioSample,
+    "ble": RadioSample,
+    "imu": ImuSample,
+    "uwb": UwbRange,
+    "uwb_fix": UwbFix,
+    "baro": BaroSample,
+}
+"""The model of each sample list's items, for the per-sample validation policy."""
 
 
 class Sighting(BaseModel):
@@ -130,10 +139,13 @@ class LocatorBatch(BaseModel):
 
 
 class IngestAccepted(BaseModel):
-    """Answer to an ingest: samples accepted and how many were too late to use."""
+    """Answer to an ingest: samples accepted, how many were too late to use, and what the
+    per-sample policy dropped (absent when nothing was)."""
 
     accepted: int
     late: int
+    dropped: list[DroppedSample] | None = None
+    dropped_total: int | None = None
 
 
 class IngestProcessed(IngestAccepted):

@@ -8,7 +8,9 @@ from starlette.concurrency import run_in_threadpool
 
 from app.core.errors import Invalid, TooLarge, validation_details
 from app.core.openapi import json_body
+from app.core.sample_policy import report, validate_screened
 from app.core.schemas import LimitQuery, OffsetQuery, Page
+from app.ingest.schemas import SAMPLE_MODELS
 from app.keys.deps import AdminDep, SiteReaderDep
 from app.sites.deps import SiteDep
 from app.state import SessionDep, SettingsDep
@@ -32,14 +34,15 @@ async def create_survey(
     if len(raw) > settings.survey_max_bytes:
         raise TooLarge(f"survey larger than {settings.survey_max_bytes} bytes")
     try:
-        body = await run_in_threadpool(SurveyCreate.model_validate_json, raw)
+        body, drops = await run_in_threadpool(validate_screened, SurveyCreate, raw, SAMPLE_MODELS)
     except ValidationError as exc:
         raise Invalid(
             "survey failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
     survey = await run_in_threadpool(service.create_survey, db=db, site_id=site.id, body=body)
     db.commit()
-    return SurveyRead.model_validate(survey)
+    stored = SurveyRead.model_validate(survey).model_dump()
+    return SurveyRead.model_validate(stored | report(drops))
 
 
 @router.get("", response_model=Page[SurveyRead])

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from app.core.schemas import DeviceIdentifier, Identifier
+from app.core.schemas import DeviceIdentifier, DroppedSample, Identifier
 from app.ingest.schemas import (
     SAMPLE_KINDS,
     BaroSample,
@@ -70,3 +70,5 @@ class SurveyRead(BaseModel):
     name: str | None
     counts: dict[str, int]
     created_at: datetime
+    dropped: list[DroppedSample] | None = None
+    dropped_total: int | None = None

@@ -35,7 +35,7 @@ def _bad_bodies(site: str) -> dict[str, tuple[str | bytes, int]]:
     return {
         "rssi as string": (json.dumps(good).replace("-50", '"loud"', 1), 422),
         "missing device_id": (json.dumps({k: v for k, v in good.items() if k != "device_id"}), 422),
-        "NaN rssi": (json.dumps(good).replace("-50", "NaN", 1), 422),
+        "every sample impossible": (json.dumps(good).replace("-5", "+5"), 422),
         "float time": (json.dumps(good).replace(str(T0), f"{T0}.5", 1), 422),
         "time before 2000": (json.dumps(batch(site, "bad-dev", t0=1000)), 422),
         "far future time": (json.dumps(batch(site, "bad-dev", t0=far_future)), 422),
@@ -85,6 +85,33 @@ def test_malformed_batches_get_4xx_and_change_nothing(
     assert set(r.json()["error"]) == {"code", "message", "details"}
     # nothing reached a filter: the device has no position at all
     assert client.get("/v1/devices/bad-dev/position", headers=admin).status_code == 404
+
+
+def test_impossible_values_drop_only_their_sample_or_field(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    device = f"{site_id}-drops"
+    body = batch(site_id, device)
+    body["wifi"][1]["rssi"] = 20  # above 0 dBm: the sample goes
+    body["wifi"][4]["tx_power"] = 86  # a misconfigured beacon: only the field goes
+    raw = json.dumps(body).replace('"rssi": -60', '"rssi": NaN', 1)  # wifi[2]
+    r = client.post(
+        "/v1/ingest?wait=true", content=raw, headers=admin | {"content-type": "application/json"}
+    )
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    assert answer["accepted"] == 7 and answer["dropped_total"] == 3
+    assert [(d["index"], d["field"], d["dropped"]) for d in answer["dropped"]] == [
+        (1, "rssi", "sample"),
+        (2, "rssi", "sample"),
+        (4, "tx_power", "field"),
+    ]
+    assert answer["dropped"][0]["code"] == "less_than_equal"
+    assert "less than or equal to 0" in answer["dropped"][0]["reason"]
+    assert answer["dropped"][1]["code"] == "finite_number"
+    assert answer["positions"], "the sound samples were processed"
+    metrics = client.get("/metrics", headers=admin).text
+    assert 'locus_ingest_dropped_samples_total{kind="wifi",reason="finite_number"}' in metrics
 
 
 def test_wait_returns_positions_in_time_order(

@@ -53,3 +53,25 @@ def test_bad_surveys_are_rejected(client: TestClient, admin: dict, site_id: str)
         r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
         assert r.status_code == status, r.text
     assert client.get(f"/v1/sites/{site_id}/surveys", headers=admin).json()["total"] == 0
+
+
+def test_a_misconfigured_beacon_drops_its_field_not_the_survey(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    body = _survey()
+    body["wifi"].append({"t": T0 + 900, "id": "aa:00:00:00:00:02", "rssi": 20})
+    body["ble"] = [
+        {"t": T0 + 700, "id": "bb:00:00:00:00:01", "rssi": -70, "tx_power": 86},
+        {"t": T0 + 800, "id": "bb:00:00:00:00:02", "rssi": -75, "tx_power": -59},
+    ]
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+    assert r.status_code == 201, r.text
+    answer = r.json()
+    assert answer["counts"]["wifi"] == 1 and answer["counts"]["ble"] == 2
+    assert [(d["kind"], d["index"], d["field"], d["dropped"]) for d in answer["dropped"]] == [
+        ("wifi", 1, "rssi", "sample"),
+        ("ble", 0, "tx_power", "field"),
+    ]
+    with client.app.state.locus.sessions() as db:
+        stored = survey_samples(db.get(SurveyRecord, answer["id"]))
+    assert "tx_power" not in stored["ble"][0] and stored["ble"][1]["tx_power"] == -59
