@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 
@@ -69,3 +71,8 @@ class Metrics:
         self.ws_dropped = Counter(
             "locus_ws_dropped_messages", "Messages dropped for slow subscribers", registry=r
         )
+
+    def count_drops(self, drops: list[dict[str, Any]]) -> None:
+        """Count the samples or fields the per-sample policy dropped, by kind and reason."""
+        for drop in drops:
+            self.ingest_dropped.labels(drop["kind"], drop["code"]).inc()

@@ -57,8 +57,7 @@ def _parse_batch(raw: bytes | str, metrics: Metrics) -> tuple[IngestBatch, dict[
         raise Invalid(
             "request failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
-    for drop in drops:
-        metrics.ingest_dropped.labels(drop["kind"], drop["code"]).inc()
+    metrics.count_drops(drops)
     return batch, report(drops)
 
 

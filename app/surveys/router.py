@@ -13,7 +13,7 @@ from app.core.schemas import LimitQuery, OffsetQuery, Page
 from app.ingest.schemas import SAMPLE_MODELS
 from app.keys.deps import AdminDep, SiteReaderDep
 from app.sites.deps import SiteDep
-from app.state import SessionDep, SettingsDep
+from app.state import SessionDep, SettingsDep, app_state
 from app.surveys import service
 from app.surveys.schemas import SurveyCreate, SurveyRead
 
@@ -39,6 +39,7 @@ async def create_survey(
         raise Invalid(
             "survey failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
+    app_state(request).metrics.count_drops(drops)
     survey = await run_in_threadpool(service.create_survey, db=db, site_id=site.id, body=body)
     db.commit()
     stored = SurveyRead.model_validate(survey).model_dump()
