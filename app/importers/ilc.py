@@ -32,13 +32,12 @@ def _vector(row: np.ndarray) -> list[float] | None:
     return None if np.isnan(row).any() else [round(float(v), 6) for v in row]
 
 
-def _plausible_tx(tx_power: float) -> bool:
-    # Some beacons advertise garbage (e.g. +69 dBm); the reading is kept, the field is not.
-    return not math.isnan(tx_power) and -128 <= tx_power <= 20
-
-
 def survey_body(walk: Walk, *, device_id: str) -> dict[str, Any]:
-    """Return the survey request for one walk (stale cached WiFi readings left out)."""
+    """Return the survey request for one walk (stale cached WiFi readings left out).
+
+    Samples go as recorded: the server drops what no radio can produce (some of
+    the mall's beacons advertise a transmit power of +69 dBm) and says so.
+    """
     return {
         "device_id": device_id,
         "floor_id": walk.floor,
@@ -81,7 +80,7 @@ def walk_samples(walk: Walk) -> dict[str, list[dict[str, Any]]]:
             {"t": int(beacons.t[i]), "id": str(beacons.id[i]), "rssi": float(beacons.rssi[i])}
             | (
                 {"tx_power": float(beacons.tx_power[i])}
-                if _plausible_tx(beacons.tx_power[i])
+                if not math.isnan(beacons.tx_power[i])
                 else {}
             )
             for i in range(len(beacons))

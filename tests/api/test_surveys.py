@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
 from fastapi.testclient import TestClient
 
+from app.datasets import data_dir
+from app.datasets.ilc import read_walk, site_walks
+from app.importers.ilc import survey_body
 from app.surveys.models import SurveyRecord
 from app.surveys.service import survey_samples
 
@@ -75,3 +79,26 @@ def test_a_misconfigured_beacon_drops_its_field_not_the_survey(
     with client.app.state.locus.sessions() as db:
         stored = survey_samples(db.get(SurveyRecord, answer["id"]))
     assert "tx_power" not in stored["ble"][0] and stored["ble"][1]["tx_power"] == -59
+
+
+SITE1 = data_dir() / "ilc" / "site1"
+
+
+@pytest.mark.skipif(not SITE1.is_dir(), reason="ILC site1 recordings not present")
+def test_a_real_site1_survey_keeps_all_but_its_two_impossible_values(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    _, path = site_walks(SITE1)[0]
+    body = survey_body(read_walk(path), device_id="surveyor") | {"floor_id": "G"}
+    assert len(body["ble"]) > 1 and len(body["wifi"]) > 1
+    body["ble"][0]["tx_power"] = 86.0
+    body["wifi"][1]["rssi"] = 20.0
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+    assert r.status_code == 201, r.text
+    answer = r.json()
+    assert [(d["kind"], d["index"], d["field"], d["dropped"]) for d in answer["dropped"]] == [
+        ("wifi", 1, "rssi", "sample"),
+        ("ble", 0, "tx_power", "field"),
+    ]
+    assert answer["counts"]["wifi"] == len(body["wifi"]) - 1
+    assert answer["counts"]["ble"] == len(body["ble"])
