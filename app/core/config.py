@@ -140,6 +140,13 @@ class Settings(BaseSettings):
     )
 
     # Workers.
+    wifi_max_age_ms: int = Field(
+        default=2000,
+        ge=0,
+        le=600_000,
+        description="A WiFi reading whose last_seen is older than this before its scan's t is "
+        "a cached repeat of an earlier scan, not a new measurement, and is dropped.",
+    )
     reorder_window_ms: int = Field(
         default=2000,
         ge=0,

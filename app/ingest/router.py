@@ -10,10 +10,9 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 
 from app.core.errors import ApiError, DomainError, Invalid, TooLarge, error_body, validation_details
-from app.core.metrics import Metrics
 from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
-from app.ingest import flows
+from app.ingest import flows, service
 from app.ingest.schemas import (
     SAMPLE_MODELS,
     IngestAccepted,
@@ -22,7 +21,7 @@ from app.ingest.schemas import (
     LocatorBatch,
 )
 from app.keys.deps import PrincipalDep, websocket_principal
-from app.state import RuntimeDep, StateDep, app_state
+from app.state import AppState, RuntimeDep, StateDep, app_state
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
 M = TypeVar("M", bound=BaseModel)
@@ -49,16 +48,22 @@ def _parse(model: type[M], raw: bytes | str) -> M:
         ) from exc
 
 
-def _parse_batch(raw: bytes | str, metrics: Metrics) -> tuple[IngestBatch, dict[str, Any]]:
-    """Validate a device's batch under the per-sample policy; count and report the drops."""
+def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[str, Any]]:
+    """Validate a device's batch under the per-sample policy, leave out cached WiFi repeats;
+    count and report the drops."""
     try:
         batch, drops = validate_screened(IngestBatch, raw, SAMPLE_MODELS)
     except ValidationError as exc:
         raise Invalid(
             "request failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
-    metrics.count_drops(drops)
-    return batch, report(drops)
+    wifi, stale = service.drop_stale_wifi(batch.wifi, state.settings.wifi_max_age_ms, drops)
+    if stale:
+        if len(wifi) + batch.sample_count - len(batch.wifi) == 0:
+            raise Invalid("every sample was dropped", details=drops + stale)
+        batch = batch.model_copy(update={"wifi": wifi})
+    state.metrics.count_drops(drops + stale)
+    return batch, report(drops + stale)
 
 
 def _answer(result: dict[str, Any], wait: bool) -> JSONResponse:
@@ -80,7 +85,7 @@ async def ingest(
 ) -> JSONResponse:
     """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
     raw = await _read_body(request, state.settings.max_body_bytes)
-    batch, dropped = _parse_batch(raw, state.metrics)
+    batch, dropped = _parse_batch(raw, state)
     result = await flows.ingest_batch(
         batch=batch,
         principal=principal,
@@ -139,7 +144,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                 await websocket.send_json(error_body("payload_too_large", "message too large"))
                 continue
             try:
-                batch, dropped = _parse_batch(raw, state.metrics)
+                batch, dropped = _parse_batch(raw, state)
                 result = await flows.ingest_batch(
                     batch=batch,
                     principal=principal,

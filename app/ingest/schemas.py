@@ -34,6 +34,9 @@ class RadioSample(_Sample):
     id: TxId
     rssi: Rssi
     freq: Annotated[int, Field(ge=0, le=100_000)] | None = None
+    last_seen: Time | None = None
+    """When the access point was last heard (an Android ``ScanResult.timestamp``); ``t`` is
+    then the time the scan completed."""
     tx_power: Annotated[float, Field(ge=-127, le=20, allow_inf_nan=False)] | None = None
 
 

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 from app.core.config import Settings
 from app.core.errors import Forbidden, Invalid, NotFound, TooLarge
 from app.core.security import Principal
 from app.core.time import now_ms
-from app.ingest.schemas import SAMPLE_KINDS, IngestBatch, LocatorBatch
+from app.ingest.schemas import SAMPLE_KINDS, IngestBatch, LocatorBatch, RadioSample
 from app.sites.cache import SiteVersions
 
 
@@ -21,6 +22,37 @@ def check_site(*, principal: Principal, site_id: str, sites: SiteVersions) -> in
     if version is None:
         raise NotFound(f"site '{site_id}' not found")
     return version
+
+
+def drop_stale_wifi(
+    wifi: list[RadioSample], max_age_ms: int, earlier_drops: list[dict[str, Any]]
+) -> tuple[list[RadioSample], list[dict[str, Any]]]:
+    """Return the WiFi readings heard during their scan, and the cached repeats left out.
+
+    A scan lists every access point the phone still remembers; those last heard more
+    than ``max_age_ms`` before the scan completed were measured by an earlier scan.
+    ``earlier_drops`` (the per-sample policy's) keep the reported indices those of the body.
+    """
+    gone = {d["index"] for d in earlier_drops if d["kind"] == "wifi" and d["dropped"] == "sample"}
+    body_index = (i for i in itertools.count() if i not in gone)
+    kept: list[RadioSample] = []
+    drops: list[dict[str, Any]] = []
+    for index, s in zip(body_index, wifi, strict=False):
+        if s.last_seen is not None and s.t - s.last_seen > max_age_ms:
+            drops.append(
+                {
+                    "kind": "wifi",
+                    "index": index,
+                    "field": "last_seen",
+                    "code": "stale",
+                    "reason": f"last heard {s.t - s.last_seen} ms before its scan "
+                    f"(at most {max_age_ms})",
+                    "dropped": "sample",
+                }
+            )
+        else:
+            kept.append(s)
+    return kept, drops
 
 
 def check_times(*, latest_t: int, settings: Settings) -> None:

@@ -11,6 +11,7 @@ from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
 from app.core.schemas import LimitQuery, OffsetQuery, Page
 from app.ingest.schemas import SAMPLE_MODELS
+from app.ingest.service import drop_stale_wifi
 from app.keys.deps import AdminDep, SiteReaderDep
 from app.sites.deps import SiteDep
 from app.state import SessionDep, SettingsDep, app_state
@@ -39,6 +40,9 @@ async def create_survey(
         raise Invalid(
             "survey failed validation", details=validation_details(exc.errors(include_url=False))
         ) from exc
+    wifi, stale = drop_stale_wifi(body.wifi, settings.wifi_max_age_ms, drops)
+    body = body.model_copy(update={"wifi": wifi})
+    drops += stale
     app_state(request).metrics.count_drops(drops)
     survey = await run_in_threadpool(service.create_survey, db=db, site_id=site.id, body=body)
     db.commit()

@@ -114,6 +114,31 @@ def test_impossible_values_drop_only_their_sample_or_field(
     assert 'locus_ingest_dropped_samples_total{kind="wifi",reason="finite_number"}' in metrics
 
 
+def test_cached_wifi_repeats_are_left_out_by_their_last_seen(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    scan_t = T0 + 5000
+    body = {
+        "device_id": f"{site_id}-scan",
+        "site_id": site_id,
+        "wifi": [
+            {"t": scan_t, "id": AP[0], "rssi": -50, "last_seen": scan_t - 500},
+            {"t": scan_t, "id": AP[1], "rssi": -55, "last_seen": scan_t - 8000},
+            {"t": scan_t, "id": AP[2], "rssi": -60, "last_seen": scan_t - 2000},
+        ],
+    }
+    r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    assert answer["accepted"] == 2
+    assert [(d["index"], d["code"], d["dropped"]) for d in answer["dropped"]] == [
+        (1, "stale", "sample")
+    ]
+    everything_stale = body | {"wifi": [body["wifi"][1]]}
+    r = client.post("/v1/ingest", json=everything_stale, headers=admin)
+    assert r.status_code == 422 and r.json()["error"]["details"][0]["code"] == "stale"
+
+
 def test_wait_returns_positions_in_time_order(
     client: TestClient, admin: dict, site_id: str
 ) -> None:

@@ -6,7 +6,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.datasets import data_dir
-from app.datasets.ilc import read_walk, site_walks
+from app.datasets.ilc import fresh_wifi, read_walk, site_walks
 from app.importers.ilc import survey_body
 from app.surveys.models import SurveyRecord
 from app.surveys.service import survey_samples
@@ -102,3 +102,30 @@ def test_a_real_site1_survey_keeps_all_but_its_two_impossible_values(
     ]
     assert answer["counts"]["wifi"] == len(body["wifi"]) - 1
     assert answer["counts"]["ble"] == len(body["ble"])
+
+
+@pytest.mark.skipif(not SITE1.is_dir(), reason="ILC site1 recordings not present")
+def test_a_survey_sent_as_android_reports_scans_keeps_only_fresh_readings(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    _, path = site_walks(SITE1)[0]
+    walk = read_walk(path)
+    scans = walk.wifi
+    body = survey_body(walk, device_id="surveyor") | {"floor_id": "G"}
+    body["wifi"] = [
+        {
+            "t": int(scans.t[i]),
+            "id": str(scans.bssid[i]),
+            "rssi": float(scans.rssi[i]),
+            "last_seen": int(scans.last_seen[i]),
+        }
+        for i in range(len(scans))
+    ]
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+    assert r.status_code == 201, r.text
+    answer = r.json()
+    fresh = fresh_wifi(scans)
+    assert 0 < len(fresh) < len(scans)
+    assert answer["counts"]["wifi"] == len(fresh)
+    assert answer["dropped_total"] == len(scans) - len(fresh)
+    assert {d["code"] for d in answer["dropped"]} == {"stale"}
