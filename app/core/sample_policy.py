@@ -74,13 +74,13 @@ def _screen_one(
             errors = exc.errors(include_url=False)
         if any(e["type"] not in VALUE_ERRORS for e in errors):
             # a structural fault: leave the item for the body's validation to reject
-            return current, []
+            return item, []
         fields = {str(e["loc"][0]) for e in errors if e["loc"]}
         optional = {f for f in fields if f in model.model_fields and not _required(model, f)}
         if optional != fields:
             # a required value is impossible: the whole sample goes
-            field = sorted(fields - optional)[0] if fields - optional else ""
-            reason = _reason(next(e for e in errors if not e["loc"] or str(e["loc"][0]) == field))
+            field = min(fields - optional)
+            reason = _reason(next(e for e in errors if e["loc"] and str(e["loc"][0]) == field))
             return None, [*drops, _drop(kind, index, field, reason, "sample")]
         removed = False
         for e in errors:
