@@ -233,6 +233,7 @@ EVALUATIONS = {
     "locator": "app.evaluation.locator_eval",
     "locator-http": "app.evaluation.locator_http",
     "ilc": "app.evaluation.ilc.cli",
+    "ilc-server": "app.evaluation.ilc.server",
     "ilc-floor-change": "app.evaluation.ilc.floor_change",
 }
 

@@ -37,18 +37,28 @@ class Scored:
     floor_ok: np.ndarray
 
 
+SentAt = dict[str, list[int]]
+"""Per sample kind, when each sample left the device (ms), where that is not its ``t``:
+a phone reports a WiFi reading when its scan completes, though its ``t`` may be
+the access point's older last-seen time."""
+
+
 def batches_by_time(
-    samples: dict[str, list[dict[str, Any]]], *, batch_ms: int
+    samples: dict[str, list[dict[str, Any]]], *, batch_ms: int, sent_at: SentAt | None = None
 ) -> list[dict[str, list[dict[str, Any]]]]:
-    """Cut sample lists into consecutive windows of ``batch_ms`` measurement time."""
-    times = [s["t"] for items in samples.values() for s in items]
+    """Cut sample lists into consecutive windows of ``batch_ms`` by the time each was sent."""
+    sent = {
+        kind: (sent_at or {}).get(kind) or [s["t"] for s in items]
+        for kind, items in samples.items()
+    }
+    times = [t for ts in sent.values() for t in ts]
     if not times:
         return []
     start = min(times)
     out: dict[int, dict[str, list[dict[str, Any]]]] = {}
     for kind, items in samples.items():
-        for s in items:
-            out.setdefault((s["t"] - start) // batch_ms, {}).setdefault(kind, []).append(s)
+        for s, t in zip(items, sent[kind], strict=True):
+            out.setdefault((t - start) // batch_ms, {}).setdefault(kind, []).append(s)
     return [out[k] for k in sorted(out)]
 
 
@@ -99,6 +109,7 @@ def replay_samples(
     batch_ms: int = 1000,
     speed: float = 0.0,
     on_positions: Callable[[list[dict[str, Any]]], None] | None = None,
+    sent_at: SentAt | None = None,
 ) -> list[dict[str, Any]]:
     """Post samples batch by batch with ``?wait=true`` and return every position, by ``t``.
 
@@ -110,7 +121,7 @@ def replay_samples(
     positions of such a flush are in no answer, so the result is read back
     from the device's stored history, and those are passed on at the end.
     """
-    chunks = batches_by_time(samples, batch_ms=batch_ms)
+    chunks = batches_by_time(samples, batch_ms=batch_ms, sent_at=sent_at)
     if not chunks:
         return []
     first_t = [min(s["t"] for items in c.values() for s in items) for c in chunks]

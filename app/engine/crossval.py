@@ -5,7 +5,9 @@ same line walked), so holding out single scans would flatter the map: each
 held-out scan would sit between two training scans of its own walk. Folds are
 therefore whole walks: walk ``w`` is in fold ``w mod k``; each fold's scans are
 located by WKNN on maps built from the other folds only, and their errors
-pooled.
+pooled. The same folds choose the site's building-dependent constants: the
+number of WKNN neighbours with the lowest held-out error, and the emission
+weight under which one scan's HMM posterior best covers the surveyed position.
 
 WKNN is vectorised over the held-out scans: with readings shifted by the
 missing level, ``d² = |v|² - 2 S Vᵀ + |s|²`` is one dense matrix product per
@@ -14,12 +16,15 @@ floor map for a chunk of scans.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
+from scipy.special import logsumexp
 
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
 from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap, RadioMapParams, Survey, build_radio_map
 from app.engine.wknn import Fingerprints, WknnParams
@@ -30,7 +35,7 @@ CHUNK = 512
 
 @dataclass(frozen=True)
 class HeldOut:
-    """Errors of every held-out scan located by WKNN.
+    """Errors of every held-out scan located by WKNN with one k.
 
     Attributes
     ----------
@@ -50,10 +55,41 @@ class HeldOut:
     folds: int
 
 
-def wknn_scans(
-    fingerprints: Fingerprints, survey: Survey, params: WknnParams
+@dataclass(frozen=True)
+class CrossValidation:
+    """Held-out figures of every candidate constant, pooled over walk-level folds.
+
+    Attributes
+    ----------
+    by_k : dict of int to HeldOut
+        WKNN errors of every candidate number of neighbours.
+    emission_score : dict of float to float
+        Mean log-score of the surveyed position under one scan's emission
+        posterior, per candidate emission weight (higher is better); empty
+        when not asked for.
+    emission_scans : int
+        Held-out scans the emission scores average.
+    """
+
+    by_k: dict[int, HeldOut]
+    emission_score: dict[float, float]
+    emission_scans: int
+
+    def best_k(self) -> int:
+        """Return the k with the lowest mean held-out error (the smaller k on ties)."""
+        return min(self.by_k, key=lambda k: (float(np.mean(self.by_k[k].error_m)), k))
+
+    def best_emission_weight(self) -> float | None:
+        """Return the emission weight with the best held-out log-score, if any was scored."""
+        if not self.emission_score:
+            return None
+        return max(self.emission_score, key=lambda w: (self.emission_score[w], -w))
+
+
+def nearest_fingerprints(
+    fingerprints: Fingerprints, survey: Survey, k: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Locate every scan of ``survey`` by WKNN (same answer as ``wknn`` scan by scan).
+    """Return the ``k`` nearest fingerprints of every scan of ``survey``, nearest first.
 
     Floor by floor, each chunk of scans is densified over the floor's
     transmitters so the distances are one BLAS product, and only the floor's
@@ -61,10 +97,10 @@ def wknn_scans(
 
     Returns
     -------
-    xy : ndarray, shape (S, 2)
-        Weighted mean position (m) of the neighbours on the voted floor.
-    floor : ndarray of int, shape (S,)
-        Voted floor index.
+    distance : ndarray, shape (S, k')
+        RSSI distances (dB), ascending; k' = min(k, number of points).
+    index : ndarray of int, shape (S, k')
+        Their rows in ``fingerprints``.
     """
     n = survey.n_scans
     # s = max(rssi - missing, 0) per (scan, transmitter)
@@ -72,7 +108,6 @@ def wknn_scans(
     n_tx = max(int(survey.reading_tx.max(initial=-1)) + 1, fingerprints.columns[0].size)
     S = sparse.csr_matrix((s_val, (survey.reading_scan, survey.reading_tx)), shape=(n, n_tx))
     s_norm = np.asarray(S.multiply(S).sum(axis=1)).ravel()
-    k = params.k
     n_maps = len(fingerprints.values)
     cand_d = np.full((n, n_maps * k), np.inf)
     cand_i = np.zeros((n, n_maps * k), dtype=np.int64)
@@ -95,54 +130,57 @@ def wknn_scans(
             cand_i[lo:hi, f * k : f * k + kf] = part + offset
         offset += norms.size
     k = min(k, offset)
-    pick = np.argpartition(cand_d, k - 1, axis=1)[:, :k]
-    dk = np.take_along_axis(cand_d, pick, axis=1)
-    near = np.take_along_axis(cand_i, pick, axis=1)
+    order = np.argsort(cand_d, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(cand_d, order, axis=1), np.take_along_axis(cand_i, order, axis=1)
+
+
+def wknn_estimates(
+    fingerprints: Fingerprints, distance: np.ndarray, index: np.ndarray, k: int, eps_db: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return WKNN positions and voted floors from each scan's first ``k`` nearest fingerprints.
+
+    Returns
+    -------
+    xy : ndarray, shape (S, 2)
+        Weighted mean position (m) of the neighbours on the voted floor.
+    floor : ndarray of int, shape (S,)
+        Voted floor index.
+    """
+    dk, near = distance[:, :k], index[:, :k]
     # w_i = 1 / (d_i + ε)
-    w = 1.0 / (dk + params.eps_db)
+    w = 1.0 / (dk + eps_db)
     floors = fingerprints.floor[near]
-    xy_out = np.zeros((n, 2))
-    floor_out = np.zeros(n, dtype=np.int64)
-    for r in range(n):
-        votes = np.bincount(floors[r], weights=w[r])
-        best = int(np.argmax(votes))
-        on = floors[r] == best
-        # x = Σ w_i x_i / Σ w_i over the voted floor's neighbours
-        xy_out[r] = w[r, on] @ fingerprints.xy[near[r, on]] / w[r, on].sum()
-        floor_out[r] = best
-    return xy_out, floor_out
+    levels = np.unique(fingerprints.floor)
+    votes = np.stack([(w * (floors == f)).sum(axis=1) for f in levels], axis=1)
+    best = levels[np.argmax(votes, axis=1)]
+    w_on = w * (floors == best[:, None])
+    # x = Σ w_i x_i / Σ w_i over the voted floor's neighbours
+    xy = np.einsum("sk,skd->sd", w_on, fingerprints.xy[near]) / w_on.sum(axis=1, keepdims=True)
+    return xy, best.astype(np.int64)
 
 
-def cross_validate(
-    survey: Survey,
-    plans: Mapping[int, FloorPlan],
-    params: RadioMapParams,
-    wknn_params: WknnParams,
-    *,
-    folds: int = 5,
-    progress: Callable[[float], None] | None = None,
-) -> HeldOut | None:
-    """Locate each walk's scans on maps built without its fold; None with fewer than 2 walks.
+def wknn_scans(
+    fingerprints: Fingerprints, survey: Survey, params: WknnParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Locate every scan of ``survey`` by WKNN (same answer as ``wknn`` scan by scan)."""
+    distance, index = nearest_fingerprints(fingerprints, survey, params.k)
+    return wknn_estimates(fingerprints, distance, index, params.k, params.eps_db)
 
-    Parameters
-    ----------
-    survey : Survey
-        Located scans of every floor; ``scan_walk`` numbers the walks.
-    plans : mapping of int to FloorPlan
-        Walkable area of each floor index.
-    params, wknn_params
-        Radio map and WKNN constants (as the service uses them).
-    folds : int
-        Folds at most; fewer when there are fewer walks.
-    progress : callable, optional
-        Called with the fraction of folds done.
+
+def walk_folds(
+    survey: Survey, plans: Mapping[int, FloorPlan], params: RadioMapParams, folds: int
+) -> Iterator[tuple[tuple[RadioMap, ...], np.ndarray]]:
+    """Yield each fold's radio maps, built without its walks, and the mask of its scans.
+
+    Walk ``w`` is in fold ``w mod k``, k = min(folds, walks); nothing is
+    yielded with fewer than two walks. Folds whose training part maps no
+    floor, or that hold no scan, are skipped.
     """
     walks = np.unique(survey.scan_walk)
     k = min(folds, walks.size)
     if k < 2:
-        return None
+        return
     fold_of_scan = survey.scan_walk % k
-    errors, oks, rows = [], [], []
     for fold in range(k):
         test = fold_of_scan == fold
         train = survey.select(~test)
@@ -155,19 +193,125 @@ def cross_validate(
             if m.n_points and m.tx.size:
                 maps.append(m)
         if maps and test.any():
-            held = survey.select(test)
-            xy, floor = wknn_scans(Fingerprints(maps, wknn_params.missing_dbm), held, wknn_params)
+            yield tuple(maps), test
+
+
+def emission_log_scores(
+    maps: tuple[RadioMap, ...],
+    held: Survey,
+    hmm_params: HmmParams,
+    weights: Sequence[float],
+    *,
+    max_scans: int,
+    kernel_m: float,
+) -> tuple[np.ndarray, int]:
+    """Return the summed log-score per candidate weight over (up to ``max_scans``) held scans.
+
+    A scan's emission posterior on its surveyed floor is ``p_j ∝ L_j^w``; its
+    score is ``ln Σ_j p_j exp(-|x_j - x|² / 2 s²)``, how much of the posterior
+    lies within about ``kernel_m`` of the surveyed position. The weight that
+    scores best is the tempering under which one scan's posterior is as sure
+    as it should be, neither spread over the floor nor a needle beside the truth.
+    """
+    model = EmissionModel(maps, replace(hmm_params, emission_weight=1.0))
+    position = {m.floor: i for i, m in enumerate(maps)}
+    rows = np.flatnonzero(np.isin(held.scan_floor, list(position)))
+    if rows.size > max_scans:
+        rows = rows[np.linspace(0, rows.size - 1, max_scans).astype(np.int64)]
+    w = np.asarray(weights, dtype=float)[:, None]
+    total = np.zeros(w.shape[0])
+    order = np.argsort(held.reading_scan, kind="stable")
+    starts = np.searchsorted(held.reading_scan[order], np.arange(held.n_scans + 1))
+    for r in rows:
+        readings = order[starts[r] : starts[r + 1]]
+        if readings.size == 0:
+            continue
+        f = position[int(held.scan_floor[r])]
+        ll = model.log_likelihood(f, held.reading_tx[readings], held.reading_rssi[readings])
+        # ln K_j = -|x_j - x|² / 2 s²
+        log_kernel = -0.5 * np.sum((model.xy[f] - held.scan_xy[r]) ** 2, axis=1) / kernel_m**2
+        scaled = w * ll[None, :]
+        total += logsumexp(scaled + log_kernel[None, :], axis=1) - logsumexp(scaled, axis=1)
+    return total, int(rows.size)
+
+
+def cross_validate(
+    survey: Survey,
+    plans: Mapping[int, FloorPlan],
+    params: RadioMapParams,
+    wknn_params: WknnParams,
+    *,
+    folds: int = 5,
+    ks: Sequence[int] = (),
+    emission: HmmParams | None = None,
+    weights: Sequence[float] = (),
+    emission_scans_per_fold: int = 300,
+    emission_kernel_m: float = 2.0,
+    progress: Callable[[float], None] | None = None,
+) -> CrossValidation | None:
+    """Locate each walk's scans on maps built without its fold; None with fewer than 2 walks.
+
+    Parameters
+    ----------
+    survey : Survey
+        Located scans of every floor; ``scan_walk`` numbers the walks.
+    plans : mapping of int to FloorPlan
+        Walkable area of each floor index.
+    params, wknn_params
+        Radio map and WKNN constants (as the service uses them).
+    folds : int
+        Folds at most; fewer when there are fewer walks.
+    ks : sequence of int
+        Candidate numbers of WKNN neighbours (``wknn_params.k`` is always one).
+    emission : HmmParams, optional
+        The HMM's emission constants; with ``weights``, each candidate
+        emission weight is scored on held-out scans.
+    weights : sequence of float
+        Candidate emission weights.
+    emission_scans_per_fold, emission_kernel_m
+        Scans scored per fold, and the kernel of the score (m).
+    progress : callable, optional
+        Called with the fraction of folds done.
+    """
+    ks = sorted({wknn_params.k, *ks})
+    errors: dict[int, list[np.ndarray]] = {k: [] for k in ks}
+    oks: dict[int, list[np.ndarray]] = {k: [] for k in ks}
+    rows: list[np.ndarray] = []
+    scores = np.zeros(len(weights))
+    scored = 0
+    n_folds = min(folds, np.unique(survey.scan_walk).size)
+    for done, (maps, test) in enumerate(walk_folds(survey, plans, params, folds), start=1):
+        held = survey.select(test)
+        prints = Fingerprints(maps, wknn_params.missing_dbm)
+        distance, index = nearest_fingerprints(prints, held, max(ks))
+        for k in ks:
+            xy, floor = wknn_estimates(prints, distance, index, k, wknn_params.eps_db)
             # e = |x̂ - x|
-            errors.append(np.hypot(*(xy - held.scan_xy).T))
-            oks.append(floor == held.scan_floor)
-            rows.append(np.flatnonzero(test))
+            errors[k].append(np.hypot(*(xy - held.scan_xy).T))
+            oks[k].append(floor == held.scan_floor)
+        rows.append(np.flatnonzero(test))
+        if emission is not None and len(weights):
+            total, n = emission_log_scores(
+                maps,
+                held,
+                emission,
+                weights,
+                max_scans=emission_scans_per_fold,
+                kernel_m=emission_kernel_m,
+            )
+            scores += total
+            scored += n
         if progress is not None:
-            progress((fold + 1) / k)
-    if not errors:
+            progress(done / n_folds)
+    if not rows:
         return None
-    return HeldOut(
-        error_m=np.concatenate(errors),
-        floor_ok=np.concatenate(oks),
-        scan=np.concatenate(rows),
-        folds=k,
+    scan = np.concatenate(rows)
+    by_k = {
+        k: HeldOut(np.concatenate(errors[k]), np.concatenate(oks[k]), scan, n_folds) for k in ks
+    }
+    emission_score = (
+        {float(w): float(v / scored) for w, v in zip(weights, scores, strict=True)}
+        if scored
+        else {}
     )
+    return CrossValidation(by_k, emission_score, scored)

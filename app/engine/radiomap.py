@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 
 from app.engine.plan import FloorPlan
 from app.engine.samples import RssiReadings
+from app.engine.scans import ScanParams, scan_ids
 
 
 @dataclass(frozen=True)
@@ -180,26 +181,37 @@ def interpolate_waypoints(t: np.ndarray, waypoints: np.ndarray) -> tuple[np.ndar
 
 
 def locate_scans(
-    readings: RssiReadings, waypoints: np.ndarray, *, floor: int, walk: int = 0
+    readings: RssiReadings,
+    waypoints: np.ndarray,
+    *,
+    floor: int,
+    walk: int = 0,
+    scans: ScanParams | None = None,
 ) -> Survey:
-    """Group a walk's readings into scans (same time) and locate each scan on the waypoints.
+    """Group a walk's readings into scans and locate each scan on the waypoints.
 
-    A transmitter repeated within one scan keeps the mean of its readings;
-    scans outside the waypoints' time span are dropped.
+    A scan's time is its last reading's; a transmitter repeated within one
+    scan keeps the mean of its readings; scans outside the waypoints' time
+    span are dropped.
 
     Parameters
     ----------
     readings : RssiReadings
-        The walk's readings; readings with equal ``t`` form one scan.
+        The walk's readings, grouped into scans by ``app.engine.scans``.
     waypoints : ndarray, shape (m, 3)
         t (ms), x, y (m), sorted by time.
     floor : int
         Floor index of the walk.
     walk : int
         Number stored in ``scan_walk``.
+    scans : ScanParams, optional
+        Scan grouping constants.
     """
     t = np.asarray(readings.t, dtype=np.int64)
-    scan_t, scan_of = np.unique(t, return_inverse=True)
+    scan_of = scan_ids(t, readings.tx, scans or ScanParams())
+    by_scan = np.argsort(scan_of, kind="stable")
+    firsts = np.flatnonzero(np.diff(scan_of[by_scan], prepend=-1))
+    scan_t = np.maximum.reduceat(t[by_scan], firsts) if t.size else np.zeros(0, np.int64)
     xy, inside = interpolate_waypoints(scan_t, waypoints)
     keep = inside[scan_of]
     new_index = np.cumsum(inside) - 1

@@ -22,6 +22,7 @@ import numpy as np
 
 from app.engine.radiomap import RadioMap
 from app.engine.samples import Batch, Estimate
+from app.engine.scans import ScanParams, group_scans
 
 
 @dataclass(frozen=True)
@@ -153,14 +154,6 @@ def wknn(
     return WknnResult(xy=xy, floor=floor, neighbours=nearest, weights=w, spread=spread)
 
 
-def scans_of(t: np.ndarray) -> list[np.ndarray]:
-    """Return the index arrays of readings sharing a time (one scan each), in time order."""
-    t = np.asarray(t, dtype=np.int64)
-    order = np.argsort(t, kind="stable")
-    cuts = np.flatnonzero(np.diff(t[order])) + 1
-    return np.split(order, cuts) if t.size else []
-
-
 def unique_readings(tx: np.ndarray, rssi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return sorted unique transmitters of a scan and the mean RSSI of each."""
     u, inverse = np.unique(np.asarray(tx, dtype=np.int64), return_inverse=True)
@@ -174,20 +167,23 @@ class WknnTracker:
 
     method = "wknn"
 
-    def __init__(self, fingerprints: Fingerprints, params: WknnParams) -> None:
+    def __init__(
+        self, fingerprints: Fingerprints, params: WknnParams, scans: ScanParams | None = None
+    ) -> None:
         self.fingerprints = fingerprints
         self.params = params
+        self.scans = scans or ScanParams()
 
     def process(self, batch: Batch) -> list[Estimate]:
-        """Return one estimate per scan (readings sharing a time) of the batch."""
+        """Return one estimate per scan of the batch, at the scan's last reading."""
         out = []
         r = batch.rssi
-        for idx in scans_of(r.t):
+        for idx in group_scans(r.t, r.tx, self.scans):
             tx, rssi = unique_readings(r.tx[idx], r.rssi[idx])
             res = wknn(self.fingerprints, tx, rssi, self.params)
             out.append(
                 Estimate(
-                    t=int(r.t[idx[0]]),
+                    t=int(r.t[idx].max()),
                     x=float(res.xy[0]),
                     y=float(res.xy[1]),
                     z=0.0,

@@ -17,12 +17,6 @@ def truth_at(waypoints: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return xy, (t >= wt[0]) & (t <= wt[-1])
 
 
-def wrap_deg(a: np.ndarray | float) -> np.ndarray:
-    """Wrap angles (degrees) into [-180, 180), so heading differences compare across north."""
-    # ((a + 180) mod 360) - 180
-    return np.mod(np.asarray(a, dtype=float) + 180.0, 360.0) - 180.0
-
-
 def error_stats(errors: np.ndarray) -> dict[str, float]:
     """Return count, mean, median, p75 and p95 of horizontal errors (m)."""
     e = np.asarray(errors, dtype=float)

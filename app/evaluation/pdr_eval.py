@@ -12,16 +12,23 @@ Run ``python -m app.evaluation.pdr_eval`` (about a minute on one core).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from app.datasets import data_dir
-from app.datasets.ilc import read_walk, site_walks
+from app.datasets.ilc import Walk, imu_samples, read_walk, site_walks
 from app.engine.pdr import PdrParams
-from app.evaluation.metrics import wrap_deg
-from app.evaluation.pdr_fit import MIN_SEGMENT_M, calibrate_k, heading_offset, measure_walks
+from app.engine.pdr_fit import (
+    MIN_SEGMENT_M,
+    WalkPdr,
+    calibrate_k,
+    heading_offset,
+    measure_walk,
+    wrap_deg,
+)
 from app.evaluation.split import walk_split
 
 
@@ -37,6 +44,25 @@ class PdrReport:
     heading_error_raw: np.ndarray
     heading_error: np.ndarray
     cadence_hz: np.ndarray
+
+
+def measure_walks(
+    walks: Iterable[Walk], params: PdrParams, *, rotation_vector: bool = True
+) -> list[WalkPdr]:
+    """Run PDR on each walk with at least two waypoints and inertial samples.
+
+    Without ``rotation_vector`` the rotation vector is withheld, so headings
+    come from the gyro + magnetometer complementary filter.
+    """
+    out = []
+    for walk in walks:
+        imu = imu_samples(walk)
+        if not rotation_vector:
+            imu.rot = np.full_like(imu.rot, np.nan)
+        measured = measure_walk(walk.walk_id, walk.floor, walk.waypoints, imu, params)
+        if measured is not None:
+            out.append(measured)
+    return out
 
 
 def evaluate(

@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 from rich.progress import Progress
 
-from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_walk, site_walks
+from app.datasets.ilc import Walk, imu_samples, read_floor, read_walk, site_walks
 
 
 @dataclass(frozen=True)
@@ -32,24 +32,45 @@ def _vector(row: np.ndarray) -> list[float] | None:
     return None if np.isnan(row).any() else [round(float(v), 6) for v in row]
 
 
-def survey_body(walk: Walk, *, device_id: str) -> dict[str, Any]:
-    """Return the survey request for one walk (stale cached WiFi readings left out).
+WIFI_TIMES = ("scan", "reading")
+"""How WiFi readings are timed: the scan's time as ``t`` with each access point's
+``last_seen`` beside it, or each reading's last-seen time as its ``t``."""
+
+
+def survey_body(walk: Walk, *, device_id: str, wifi_times: str = "scan") -> dict[str, Any]:
+    """Return the survey request for one walk.
 
     Samples go as recorded: the server drops what no radio can produce (some of
-    the mall's beacons advertise a transmit power of +69 dBm) and says so.
+    the mall's beacons advertise a transmit power of +69 dBm) and cached WiFi
+    readings too old for their scan, and says so.
     """
     return {
         "device_id": device_id,
         "floor_id": walk.floor,
         "name": walk.walk_id,
         "waypoints": [{"t": int(t), "x": float(x), "y": float(y)} for t, x, y in walk.waypoints],
-        **walk_samples(walk),
+        **walk_samples(walk, wifi_times=wifi_times),
     }
 
 
-def walk_samples(walk: Walk) -> dict[str, list[dict[str, Any]]]:
+def wifi_samples(walk: Walk, wifi_times: str = "scan") -> list[dict[str, Any]]:
+    """Return every WiFi reading of the walk as a phone reports it (see ``WIFI_TIMES``)."""
+    w = walk.wifi
+    if wifi_times == "reading":
+        return [
+            {"t": int(w.last_seen[i]), "id": str(w.bssid[i]), "rssi": float(w.rssi[i])}
+            | {"freq": int(w.freq[i])}
+            for i in range(len(w))
+        ]
+    return [
+        {"t": int(w.t[i]), "id": str(w.bssid[i]), "rssi": float(w.rssi[i])}
+        | {"freq": int(w.freq[i]), "last_seen": int(w.last_seen[i])}
+        for i in range(len(w))
+    ]
+
+
+def walk_samples(walk: Walk, *, wifi_times: str = "scan") -> dict[str, list[dict[str, Any]]]:
     """Return a walk's WiFi, BLE and IMU samples as ingest sample lists."""
-    wifi = fresh_wifi(walk.wifi)
     imu = imu_samples(walk)
     imu_rows = []
     for i in range(len(imu)):
@@ -67,15 +88,7 @@ def walk_samples(walk: Walk) -> dict[str, list[dict[str, Any]]]:
             imu_rows.append(sample)
     beacons = walk.beacons
     return {
-        "wifi": [
-            {
-                "t": int(wifi.t[i]),
-                "id": str(wifi.bssid[i]),
-                "rssi": float(wifi.rssi[i]),
-                "freq": int(wifi.freq[i]),
-            }
-            for i in range(len(wifi))
-        ],
+        "wifi": wifi_samples(walk, wifi_times),
         "ble": [
             {"t": int(beacons.t[i]), "id": str(beacons.id[i]), "rssi": float(beacons.rssi[i])}
             | (

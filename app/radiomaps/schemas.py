@@ -54,12 +54,33 @@ class HeldOutAccuracy(BaseModel):
     """Errors of scans located on maps built without their walk (walk-level k-fold)."""
 
     method: Literal["wknn"]
+    k: int | None = None
     folds: int
     scans: int
     mean_error_m: float | None
     p50_error_m: float | None
     p90_error_m: float | None
     floor_error_rate: float | None
+
+
+class SiteTuningRead(BaseModel):
+    """The building-dependent constants the build chose from the site's own surveys."""
+
+    weinberg_k: float
+    heading_offset_deg: float
+    heading_std_deg: float
+    wknn_k: int
+    emission_weight: float
+    accuracy_floor_m: float
+    pdr_walks: int
+
+
+class TuningScores(BaseModel):
+    """The held-out figure of every candidate the build chose among."""
+
+    wknn_mean_error_m_by_k: dict[str, float | None]
+    emission_log_score_by_weight: dict[str, float | None]
+    emission_scans: int
 
 
 class BuildSummary(BaseModel):
@@ -73,6 +94,8 @@ class BuildSummary(BaseModel):
     floors: list[FloorBuild]
     calibration: CalibrationSummary
     accuracy: HeldOutAccuracy | None
+    tuning: SiteTuningRead | None = None
+    tuning_scores: TuningScores | None = None
     map_version: int | None = None
     elapsed_ms: float | None = None
 

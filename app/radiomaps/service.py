@@ -23,7 +23,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.core.db import session_scope
 from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
-from app.engine.crossval import cross_validate
+from app.engine.crossval import CrossValidation, cross_validate
+from app.engine.hmm.params import HmmParams
+from app.engine.pdr import PdrParams
+from app.engine.pdr_fit import WalkPdr, measure_walk
 from app.engine.radiomap import (
     RadioMap,
     RadioMapParams,
@@ -32,8 +35,10 @@ from app.engine.radiomap import (
     locate_scans,
     walkable_cells,
 )
-from app.engine.samples import RssiReadings
+from app.engine.samples import ImuSamples, RssiReadings
+from app.engine.tuning import EMISSION_WEIGHT_CANDIDATES, WKNN_K_CANDIDATES, tune_site
 from app.engine.wknn import WknnParams
+from app.ingest.arrays import imu_arrays
 from app.radiomaps.codec import encode_map
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.sites.assembly import LoadedSite, assemble_site
@@ -60,6 +65,7 @@ class SurveyInput:
     t: np.ndarray
     ids: list[str]
     rssi: np.ndarray
+    imu: ImuSamples
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,7 +117,13 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
         t=np.array(t, dtype=np.int64),
         ids=ids,
         rssi=np.array(rssi, dtype=float),
+        imu=_sorted_imu(imu_arrays(samples.get("imu", ()))),
     )
+
+
+def _sorted_imu(imu: ImuSamples) -> ImuSamples:
+    order = np.argsort(imu.t, kind="stable")
+    return ImuSamples(imu.t[order], imu.acc[order], imu.gyro[order], imu.mag[order], imu.rot[order])
 
 
 def load_inputs(*, db: Session, site: Site, raster_cell: float) -> BuildInputs:
@@ -197,18 +209,26 @@ def compute_build(
     }
     fits = calibrate(survey, CALIBRATION, known=known, progress=lambda x: report(0.25 + 0.4 * x))
     report(0.65)
-    held = cross_validate(
+    validation = cross_validate(
         survey,
         plans,
         RADIO_MAP,
         WKNN,
         folds=folds,
-        progress=lambda x: report(0.65 + 0.3 * x),
+        ks=WKNN_K_CANDIDATES,
+        emission=HmmParams(),
+        weights=EMISSION_WEIGHT_CANDIDATES,
+        progress=lambda x: report(0.65 + 0.25 * x),
     )
+    walks = _measured_walks(inputs)
+    tuning = tune_site(walks, validation)
+    report(0.95)
     accuracy: dict[str, Any] | None = None
-    if held is not None:
+    if validation is not None:
+        held = validation.by_k[tuning.wknn_k]
         accuracy = {
             "method": "wknn",
+            "k": tuning.wknn_k,
             "folds": held.folds,
             "scans": int(held.error_m.size),
             "mean_error_m": _r(float(np.mean(held.error_m))),
@@ -236,11 +256,38 @@ def compute_build(
             "transmitters": [_fit_row(f, tx_ids, site.floor_ids) for f in fits],
         },
         "accuracy": accuracy,
+        "tuning": tuning.as_dict(),
+        "tuning_scores": _tuning_scores(validation),
     }
     report(1.0)
     return BuildResult(
         maps=maps, fits=fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
     )
+
+
+def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
+    """Return the PDR of every survey with inertial samples against its waypoints."""
+    out = []
+    for s in inputs.surveys:
+        walk = measure_walk(str(s.survey_id), s.floor_id, s.waypoints, s.imu, PdrParams())
+        if walk is not None:
+            out.append(walk)
+    return out
+
+
+def _tuning_scores(validation: CrossValidation | None) -> dict[str, Any] | None:
+    """Return the held-out figure of every candidate the tuning chose among."""
+    if validation is None:
+        return None
+    return {
+        "wknn_mean_error_m_by_k": {
+            str(k): _r(float(np.mean(h.error_m))) for k, h in validation.by_k.items()
+        },
+        "emission_log_score_by_weight": {
+            str(w): _r(v, 4) for w, v in validation.emission_score.items()
+        },
+        "emission_scans": validation.emission_scans,
+    }
 
 
 def _fit_row(fit: TransmitterFit, tx_ids: tuple[str, ...], floor_ids: tuple[str, ...]) -> dict:

@@ -3,7 +3,7 @@ zones around it, as the workers, radio-map builds and planning read it."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from app.engine.radiomap import RadioMap
 from app.engine.site import Emitters, Floor, SiteModel
+from app.engine.tuning import SiteTuning
 from app.floors.service import list_floors
 from app.geometry.floormap import Emitter, parse_floor_map
 from app.geometry.raster import floor_plan
@@ -49,7 +50,7 @@ class LoadedSite:
     zones: tuple[Zone, ...]
     engine: str = "hmm"
     radio_maps: tuple[RadioMap, ...] = ()
-    fingerprint_error_m: float | None = None
+    tuning: SiteTuning = field(default_factory=SiteTuning.defaults)
 
     def has_pathloss(self) -> bool:
         """Return whether any transmitter has a complete path-loss model."""
@@ -57,12 +58,18 @@ class LoadedSite:
         return bool(len(tx)) and bool(np.isfinite(tx.A + tx.B + tx.sigma).any())
 
 
-def _fingerprint_error(db: Session, site_id: str) -> float | None:
-    """Return the median held-out error (m) of the site's latest radio-map build, if any."""
+def _tuning(db: Session, site_id: str) -> SiteTuning:
+    """Return the constants the site's latest radio-map build chose (defaults without one).
+
+    A build stored before builds chose constants still gives its held-out
+    median error as the accuracy floor.
+    """
     build = db.get(RadioMapBuild, site_id)
-    accuracy = (build.summary or {}).get("accuracy") if build is not None else None
-    value = accuracy.get("p50_error_m") if accuracy else None
-    return float(value) if value is not None else None
+    summary = (build.summary or {}) if build is not None else {}
+    if summary.get("tuning"):
+        return SiteTuning.from_dict(summary["tuning"])
+    p50 = (summary.get("accuracy") or {}).get("p50_error_m")
+    return SiteTuning.from_dict({"accuracy_floor_m": p50} if p50 is not None else None)
 
 
 def _emitters(rows: list[tuple[int, Emitter]]) -> Emitters:
@@ -195,12 +202,12 @@ def assemble_site(
     tables = {kind: _emitters(items) for kind, items in emitters.items()}
     floor_index = {f.floor_id: i for i, f in enumerate(floors)}
     radio_maps: tuple[RadioMap, ...] = ()
-    fingerprint_error_m = None
+    tuning = SiteTuning.defaults()
     if with_radiomap:
         tables["transmitter"], radio_maps = _with_radiomap(
             db, site.id, tables["transmitter"], floor_index
         )
-        fingerprint_error_m = _fingerprint_error(db, site.id) if radio_maps else None
+        tuning = _tuning(db, site.id) if radio_maps else tuning
     model = SiteModel(
         site_id=site.id,
         floors=tuple(floors),
@@ -220,5 +227,5 @@ def assemble_site(
         zones=tuple(zones),
         engine=site.engine or "hmm",
         radio_maps=radio_maps,
-        fingerprint_error_m=fingerprint_error_m,
+        tuning=tuning,
     )

@@ -6,11 +6,11 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from app.engine.samples import Batch, Fixes, ImuSamples, Pressure, Ranges, RssiReadings, Sightings
+from app.engine.samples import Batch, Fixes, Pressure, Ranges, RssiReadings, Sightings
+from app.ingest.arrays import imu_arrays
 from app.sites.assembly import LoadedSite
 from app.sites.radio_ids import radio_id
 
-_NAN3 = (np.nan, np.nan, np.nan)
 _A = TypeVar("_A")
 
 
@@ -72,15 +72,7 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
                 np.array(seen_rssi, float),
             )
         ),
-        imu=_sorted(
-            ImuSamples(
-                np.array([s["t"] for s in imu], np.int64),
-                np.array([s.get("acc") or _NAN3 for s in imu], float).reshape(-1, 3),
-                np.array([s.get("gyro") or _NAN3 for s in imu], float).reshape(-1, 3),
-                np.array([s.get("mag") or _NAN3 for s in imu], float).reshape(-1, 3),
-                np.array([_rot4(s.get("rot")) for s in imu], float).reshape(-1, 4),
-            )
-        ),
+        imu=_sorted(imu_arrays(imu)),
         ranges=_sorted(
             Ranges(
                 np.array(ranges_t, np.int64),
@@ -107,16 +99,6 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
         ),
     )
     return batch, unknown
-
-
-def _rot4(rot: list[float] | None) -> tuple[float, ...]:
-    if rot is None:
-        return (np.nan,) * 4
-    if len(rot) == 4:
-        return tuple(rot)
-    # w of a unit quaternion from its vector part (Android omits it on old devices)
-    w = float(np.sqrt(max(0.0, 1.0 - sum(v * v for v in rot))))
-    return (*rot, w)
 
 
 def _sorted(arrays: _A) -> _A:

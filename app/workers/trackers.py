@@ -21,6 +21,7 @@ from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
 from app.engine.locator_tracker import LocatorTracker, LocatorTrackerParams
 from app.engine.particle.floor_model import build_floor_models
+from app.engine.pdr import PdrParams
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate
 from app.engine.tracker import Tracker
@@ -45,23 +46,26 @@ class SiteEngines:
     _pf: PositioningEngine | None = field(default=None, repr=False)
     _hmm: EmissionModel | None = field(default=None, repr=False)
     hmm_params: HmmParams = field(default_factory=HmmParams)
+    pdr_params: PdrParams = field(default_factory=PdrParams)
 
     @classmethod
     def for_site(cls, site: LoadedSite) -> SiteEngines:
-        """Return a site's engines, their accuracy radius widened by its build's held-out error.
+        """Return a site's engines with the constants its radio-map build chose.
 
-        The median held-out error of the site's radio-map build is added in
-        quadrature to the radius each filter computes (``accuracy_floor_m``):
-        the filters know their own uncertainty under the maps, not how far
-        the maps are from the truth. On ILC site1's validation walks that put
-        69% of the particle filter's errors inside its 68% radius (6% without)
-        and 69.5% of the HMM's (11% without).
+        The build learned the site's PDR constants (step length, heading
+        offset), the HMM's neighbours, emission weight and heading noise,
+        and the accuracy floor: the median held-out error, added in
+        quadrature to the radius each filter computes, since the filters know
+        their own uncertainty under the maps, not how far the maps are from
+        the truth.
         """
-        floor = site.fingerprint_error_m or 0.0
+        tuning = site.tuning
+        pdr = tuning.pdr()
         return cls(
             site,
-            PositioningParams(accuracy_floor_m=floor),
-            hmm_params=HmmParams(accuracy_floor_m=floor),
+            PositioningParams(pdr=pdr, accuracy_floor_m=tuning.accuracy_floor_m),
+            hmm_params=tuning.hmm(),
+            pdr_params=pdr,
         )
 
     @property
@@ -220,7 +224,8 @@ def make_tracker(
         if state is not None and not _hmm_state_fits(model, state):
             # the radio map was rebuilt: the old distribution has no meaning on the new points
             state = None
-        return FilterDevice(HMM, HmmTracker(model, engines.hmm_params, state=state))
+        tracker = HmmTracker(model, engines.hmm_params, engines.pdr_params, state=state)
+        return FilterDevice(HMM, tracker)
     if kind == UWB:
         return FilterDevice(UWB, UwbTracker(engines.site.model, UwbTrackerParams(), state))
     if kind == LOCATOR:

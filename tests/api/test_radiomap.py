@@ -132,8 +132,12 @@ def test_async_rebuild_reports_progress_and_stores_the_same_result(
 def _replay(
     client: TestClient, site_id: str, device: str, path: Path, shift_ms: int = 0
 ) -> list[dict[str, Any]]:
-    """Post a walk's WiFi (its times moved by ``shift_ms``) and return the positions."""
-    wifi = [s | {"t": s["t"] + shift_ms} for s in walk_samples(read_walk(path, FLOOR))["wifi"]]
+    """Post a walk's fresh WiFi (its times moved by ``shift_ms``) and return the positions."""
+    wifi = [
+        s | {"t": s["t"] + shift_ms, "last_seen": s["last_seen"] + shift_ms}
+        for s in walk_samples(read_walk(path, FLOOR))["wifi"]
+        if s["t"] - s["last_seen"] <= 2000
+    ]
     body = {"device_id": device, "site_id": site_id, "wifi": wifi}
     r = client.post("/v1/ingest?wait=true", json=body, headers=make_admin())
     assert r.status_code == 200, r.text

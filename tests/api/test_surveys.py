@@ -89,7 +89,9 @@ def test_a_real_site1_survey_keeps_all_but_its_two_impossible_values(
     client: TestClient, admin: dict, site_id: str
 ) -> None:
     _, path = site_walks(SITE1)[0]
-    body = survey_body(read_walk(path), device_id="surveyor") | {"floor_id": "G"}
+    # readings timed by their own last-seen time: no staleness to drop
+    body = survey_body(read_walk(path), device_id="surveyor", wifi_times="reading")
+    body |= {"floor_id": "G"}
     assert len(body["ble"]) > 1 and len(body["wifi"]) > 1
     body["ble"][0]["tx_power"] = 86.0
     body["wifi"][1]["rssi"] = 20.0
@@ -111,16 +113,8 @@ def test_a_survey_sent_as_android_reports_scans_keeps_only_fresh_readings(
     _, path = site_walks(SITE1)[0]
     walk = read_walk(path)
     scans = walk.wifi
-    body = survey_body(walk, device_id="surveyor") | {"floor_id": "G"}
-    body["wifi"] = [
-        {
-            "t": int(scans.t[i]),
-            "id": str(scans.bssid[i]),
-            "rssi": float(scans.rssi[i]),
-            "last_seen": int(scans.last_seen[i]),
-        }
-        for i in range(len(scans))
-    ]
+    body = survey_body(walk, device_id="surveyor", wifi_times="scan") | {"floor_id": "G"}
+    assert len(body["wifi"]) == len(scans) and all("last_seen" in s for s in body["wifi"])
     r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
     assert r.status_code == 201, r.text
     answer = r.json()

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from app.engine.crossval import cross_validate, wknn_scans
+from app.engine.hmm.params import HmmParams
 from app.engine.radiomap import (
     RadioMap,
     RadioMapParams,
@@ -144,11 +145,35 @@ def test_batched_wknn_equals_scan_by_scan_wknn() -> None:
 
 def test_cross_validation_holds_out_whole_walks_and_locates_the_corridor() -> None:
     survey = _corridor(seed=4)
-    held = cross_validate(survey, {}, RadioMapParams(), WknnParams(), folds=3)
-    assert held is not None and held.folds == 3
+    validation = cross_validate(survey, {}, RadioMapParams(), WknnParams(), folds=3)
+    assert validation is not None
+    held = validation.by_k[WknnParams().k]
+    assert held.folds == 3
     assert sorted(held.scan.tolist()) == list(range(survey.n_scans))
     assert held.floor_ok.all()
     # a 1-D field with 3 transmitters at σ = 2 dB: most scans within a few metres
     assert float(np.median(held.error_m)) < 2.5
     one_walk = survey.select(survey.scan_walk == 0)
     assert cross_validate(one_walk, {}, RadioMapParams(), WknnParams()) is None
+
+
+def test_cross_validation_scores_every_candidate_and_chooses_the_best() -> None:
+    survey = _corridor(seed=4)
+    validation = cross_validate(
+        survey,
+        {},
+        RadioMapParams(),
+        WknnParams(),
+        folds=3,
+        ks=(1, 2, 8),
+        emission=HmmParams(),
+        weights=(0.05, 0.3, 1.0),
+    )
+    assert validation is not None
+    assert sorted(validation.by_k) == sorted({1, 2, 8, WknnParams().k})
+    means = {k: float(np.mean(h.error_m)) for k, h in validation.by_k.items()}
+    assert means[validation.best_k()] == min(means.values())
+    assert set(validation.emission_score) == {0.05, 0.3, 1.0}
+    assert validation.emission_scans > 0
+    best = validation.best_emission_weight()
+    assert validation.emission_score[best] == max(validation.emission_score.values())

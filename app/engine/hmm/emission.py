@@ -56,6 +56,10 @@ class EmissionModel:
         n_tx = max(int(m.tx.max(initial=-1)) for m in self.maps) + 1
         self.columns = self.fingerprints.columns
         self.n_tx = n_tx
+        # transmitters some floor's map has: only they are evidence of a position
+        self.mapped = np.zeros(n_tx, dtype=bool)
+        for lookup in self.columns:
+            self.mapped[: lookup.size] |= lookup >= 0
         # ln q₀ + ln N(s; s₀, v₀) pieces for transmitters absent from a floor's map
         self.unmapped = (
             np.log(params.unmapped_detect) - 0.5 * np.log(2.0 * np.pi * params.unmapped_var_db2),
@@ -63,6 +67,14 @@ class EmissionModel:
             1.0 / params.unmapped_var_db2,
         )
         self.params = params
+
+    def is_mapped(self, tx: np.ndarray) -> np.ndarray:
+        """Return which site transmitter indices some floor's map has, shape (n,)."""
+        tx = np.asarray(tx, dtype=np.int64)
+        inside = tx < self.n_tx
+        out = np.zeros(tx.size, dtype=bool)
+        out[inside] = self.mapped[tx[inside]]
+        return out
 
     def n_points(self, f: int) -> int:
         """Return the number of reference points of map ``f`` (position in ``maps``)."""

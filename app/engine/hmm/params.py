@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from app.engine.scans import ScanParams
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,12 @@ class HmmParams:
         If the IMU stream lags the radio by more than this, scans go ahead without it.
     min_accuracy_m : float
         Smallest accuracy radius reported (m): the grid and the survey's own error.
+    max_reading_age_ms : int
+        A reading this much older than the newest one heard is a cached
+        repeat (a client sending per-reading last-seen times reports them
+        with every scan) and is not used.
+    scans : ScanParams
+        How readings are grouped into scans.
     accuracy_floor_m : float
         Error (m) added in quadrature to the posterior's 68% radius: the
         posterior knows the maps' noise, not how far the fingerprints
@@ -88,3 +96,5 @@ class HmmParams:
     imu_timeout_ms: int = 3000
     min_accuracy_m: float = 1.0
     accuracy_floor_m: float = 0.0
+    max_reading_age_ms: int = 3000
+    scans: ScanParams = field(default_factory=ScanParams)

@@ -13,7 +13,8 @@ from app.engine.hmm.params import HmmParams
 from app.engine.hmm.transition import propagate, step_displacement, transition_kernel
 from app.engine.pdr import Pdr, PdrParams, Steps
 from app.engine.samples import Batch, Estimate
-from app.engine.wknn import scans_of, unique_readings
+from app.engine.scans import group_scans
+from app.engine.wknn import unique_readings
 
 _PDR_KEYS = tuple(Pdr().snapshot())
 """Keys of a PDR snapshot; those holding None are left out of the HMM's snapshot."""
@@ -147,11 +148,16 @@ class HmmTracker:
             self.t_imu = max(self.t_imu, int(np.max(batch.imu.t)))
             self.t_last = max(self.t_last, self.t_imu)
         r = batch.rssi
-        if len(r):
-            self.scan_t = np.concatenate([self.scan_t, np.asarray(r.t, dtype=np.int64)])
-            self.scan_tx = np.concatenate([self.scan_tx, np.asarray(r.tx, dtype=np.int32)])
-            self.scan_rssi = np.concatenate([self.scan_rssi, np.asarray(r.rssi, dtype=float)])
-            self.t_last = max(self.t_last, int(np.max(r.t)))
+        # only mapped transmitters place a device; readings older than the last scan used,
+        # or far older than the newest, are cached repeats of what it already said
+        newest = max(int(np.max(r.t, initial=-1)), int(np.max(self.scan_t, initial=-1)))
+        oldest = max(self.t_scan + 1, newest - self.params.max_reading_age_ms)
+        keep = self.model.is_mapped(r.tx) & (np.asarray(r.t) >= oldest)
+        if keep.any():
+            self.scan_t = np.concatenate([self.scan_t, np.asarray(r.t[keep], dtype=np.int64)])
+            self.scan_tx = np.concatenate([self.scan_tx, np.asarray(r.tx[keep], dtype=np.int32)])
+            self.scan_rssi = np.concatenate([self.scan_rssi, np.asarray(r.rssi[keep], float)])
+            self.t_last = max(self.t_last, int(np.max(r.t[keep])))
         return self._run()
 
     def _ready_until(self) -> int:
@@ -164,11 +170,16 @@ class HmmTracker:
     def _run(self) -> list[Estimate]:
         out: list[Estimate] = []
         ready = self._ready_until()
-        groups = scans_of(self.scan_t)
-        done = [g for g in groups if self.scan_t[g[0]] <= ready]
+        groups = group_scans(self.scan_t, self.scan_tx, self.params.scans)
+        # a scan is complete at its last reading; the newest one may still be growing
+        ends = [int(self.scan_t[g].max()) for g in groups]
+        closed = [
+            end <= ready and (i + 1 < len(groups) or end + self.params.scans.gap_ms <= ready)
+            for i, end in enumerate(ends)
+        ]
+        done = [g for g, ok in zip(groups, closed, strict=True) if ok]
         waiting_from = min(
-            (int(self.scan_t[g[0]]) for g in groups if len(g) and self.scan_t[g[0]] > ready),
-            default=None,
+            (end for end, ok in zip(ends, closed, strict=True) if not ok), default=None
         )
         step_ok = (
             np.ones(len(self.steps), dtype=bool)
@@ -179,7 +190,7 @@ class HmmTracker:
             (int(t), 0, i)
             for i, t in zip(np.flatnonzero(step_ok), self.steps.t[step_ok], strict=True)
         ]
-        events += [(int(self.scan_t[g[0]]), 1, g) for g in done]
+        events += [(end, 1, g) for g, end, ok in zip(groups, ends, closed, strict=True) if ok]
         events.sort(key=lambda e: (e[0], e[1]))
         for t, kind, item in events:
             self._heartbeat(t, out)

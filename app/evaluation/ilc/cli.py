@@ -61,9 +61,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"learned in {learn_s:.0f} s: {len(exp.site.tx_ids)} transmitters heard, "
         f"{len(learned.fits)} calibrated ({n_plausible} plausible, used by pf), "
         f"{sum(m.n_points for m in learned.maps)} radio-map points, "
-        f"PDR K = {learned.pdr.weinberg_k:.4f}, heading offset = "
-        f"{learned.pdr.heading_offset_deg:+.2f}°, held-out WKNN median "
-        f"{learned.fingerprint_error_m:.2f} m (pf-radiomap's radius floor)"
+        f"chosen on training folds: {learned.tuning.as_dict()}"
     )
     with Progress(
         "[progress.description]{task.description}",

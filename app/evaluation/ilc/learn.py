@@ -16,13 +16,20 @@ import numpy as np
 from app.datasets.ilc import floor_level
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate, to_emitters
 from app.engine.crossval import cross_validate
+from app.engine.hmm.params import HmmParams
 from app.engine.pdr import PdrParams
 from app.engine.radiomap import RadioMap, RadioMapParams, Survey, build_radio_map
 from app.engine.samples import Batch, RssiReadings
 from app.engine.site import Floor, SiteModel
+from app.engine.tuning import (
+    EMISSION_WEIGHT_CANDIDATES,
+    WKNN_K_CANDIDATES,
+    SiteTuning,
+    tune_site,
+)
 from app.engine.wknn import WknnParams
 from app.evaluation.ilc.recordings import SiteRecordings, survey_of
-from app.evaluation.pdr_fit import fit_pdr_constants
+from app.evaluation.pdr_eval import measure_walks
 
 FLOOR_HEIGHT_M = 4.0
 """Storey height of the site model: ILC carries no survey of it (only z0 of outputs uses it)."""
@@ -34,9 +41,8 @@ class Learned:
 
     ``pf_lookup`` maps a site transmitter index to its row in the particle
     filter's transmitter table (-1: not calibrated, unknown to the filter).
-    ``fingerprint_error_m`` is the median error of the training scans located
-    by WKNN on maps built without their walk's fold, as a radio-map build
-    reports it; the server's HMM and particle filter add it to their radius.
+    ``tuning`` holds the constants chosen on the training walks by the same
+    functions a radio-map build runs (walk-level folds, PDR against waypoints).
     """
 
     maps: tuple[RadioMap, ...]
@@ -44,7 +50,7 @@ class Learned:
     pdr: PdrParams
     pf_site: SiteModel
     pf_lookup: np.ndarray
-    fingerprint_error_m: float = 0.0
+    tuning: SiteTuning
 
 
 def radio_maps(site: SiteRecordings, srv: Survey, params: RadioMapParams) -> tuple[RadioMap, ...]:
@@ -103,15 +109,20 @@ def learn(
     srv = survey_of(site, chosen)
     status("building radio maps")
     maps = radio_maps(site, srv, map_params or RadioMapParams())
-    status("cross-validating the radio maps")
-    held = cross_validate(
-        srv, dict(enumerate(site.plans)), map_params or RadioMapParams(), WknnParams()
+    status("cross-validating the radio maps and choosing the site's constants")
+    validation = cross_validate(
+        srv,
+        dict(enumerate(site.plans)),
+        map_params or RadioMapParams(),
+        WknnParams(),
+        ks=WKNN_K_CANDIDATES,
+        emission=HmmParams(),
+        weights=EMISSION_WEIGHT_CANDIDATES,
     )
     status("calibrating transmitters")
     fits = tuple(calibrate(srv, calibration or CalibrationParams()))
     status("fitting PDR constants")
     training_walks = (w for w in site.walks if w.walk_id in chosen)
-    pdr_params = fit_pdr_constants(training_walks, pdr or PdrParams())
+    tuning = tune_site(measure_walks(training_walks, PdrParams()), validation)
     model, lookup = pf_site_model(site, fits)
-    error = float(np.median(held.error_m)) if held is not None else 0.0
-    return Learned(maps, fits, pdr_params, model, lookup, error)
+    return Learned(maps, fits, tuning.pdr(pdr), model, lookup, tuning)

@@ -23,7 +23,6 @@ import numpy as np
 from app.datasets.ilc import Walk
 from app.engine.floors.evidence import FloorEvidence
 from app.engine.hmm.emission import EmissionModel
-from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
 from app.engine.particle.floor_model import FloorModel, build_floor_models
 from app.engine.positioning import (
@@ -35,7 +34,7 @@ from app.engine.positioning import (
 )
 from app.engine.radiomap import RadioMap
 from app.engine.samples import Estimate
-from app.engine.wknn import Fingerprints, WknnParams, WknnTracker
+from app.engine.wknn import Fingerprints, WknnTracker
 from app.evaluation.ilc.learn import Learned, remap
 from app.evaluation.ilc.recordings import SiteRecordings, walk_batches
 from app.evaluation.ilc.replay import WalkReplay, replay, replay_devices
@@ -59,7 +58,7 @@ class WalkRunner(Protocol):
 def make_runner(name: str, learned: Learned) -> WalkRunner:
     """Return the replay function of a method, with its shared, prebuilt models."""
     if name == "wknn":
-        params = WknnParams()
+        params = learned.tuning.wknn()
         prints = Fingerprints(learned.maps, params.missing_dbm)
 
         def run_wknn(site: SiteRecordings, walk: Walk) -> WalkReplay:
@@ -67,8 +66,8 @@ def make_runner(name: str, learned: Learned) -> WalkRunner:
 
         return run_wknn
     if name == "hmm":
-        # the radius floor a server takes from its site's radio-map build
-        hmm_params = HmmParams(accuracy_floor_m=learned.fingerprint_error_m)
+        # the constants a server takes from its site's radio-map build
+        hmm_params = learned.tuning.hmm()
         model = EmissionModel(learned.maps, hmm_params)
 
         def run_hmm(site: SiteRecordings, walk: Walk) -> WalkReplay:
@@ -124,7 +123,7 @@ def pf_positioning_params(name: str, learned: Learned) -> PositioningParams:
     ``pf-radiomap`` also gets the radius floor a server takes from its site's
     radio-map build (``app.workers.trackers.SiteEngines.for_site``).
     """
-    floor = learned.fingerprint_error_m if name == "pf-radiomap" else 0.0
+    floor = learned.tuning.accuracy_floor_m if name == "pf-radiomap" else 0.0
     return PositioningParams(pdr=learned.pdr, accuracy_floor_m=floor)
 
 

@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.engine.pdr_fit import wrap_deg
 from app.engine.samples import Estimate
-from app.evaluation.metrics import truth_at, wrap_deg
+from app.evaluation.metrics import truth_at
 
 MIN_HEADING_SEGMENT_M = 1.0
 """Waypoint segments shorter than this have no meaningful direction."""

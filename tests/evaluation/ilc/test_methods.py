@@ -11,6 +11,7 @@ from app.datasets.ilc import Walk, WifiScan
 from app.engine.calibration import TransmitterFit
 from app.engine.pdr import PdrParams
 from app.engine.plan import FloorPlan
+from app.engine.tuning import SiteTuning
 from app.evaluation.ilc.learn import Learned, pf_site_model
 from app.evaluation.ilc.methods import make_runner, replay_pf_batched
 from app.evaluation.ilc.recordings import SiteRecordings, walk_batches
@@ -61,7 +62,7 @@ def test_batched_particle_filter_replay_equals_walk_by_walk() -> None:
         for i in range(len(AP_IDS))
     ]
     model, lookup = pf_site_model(site, fits)
-    learned = Learned((), tuple(fits), PdrParams(), model, lookup)
+    learned = Learned((), tuple(fits), PdrParams(), model, lookup, SiteTuning.defaults())
     batched, _, updates = replay_pf_batched(site, learned, walks)
     assert updates == sum(len(list(walk_batches(site, w))) for w in walks)
     alone = make_runner("pf", learned)

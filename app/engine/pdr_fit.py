@@ -4,20 +4,19 @@ A walk's steps are compared with its waypoint polyline: the summed step
 swing against the walked distance (which fits Weinberg's K) and, per long
 enough segment, the mean step heading against the segment's direction (which
 fits the heading offset, the rotation of the site frame against magnetic
-north). Both the PDR evaluation and the site1 positioning evaluation fit the
-constants on training walks this way.
+north). A radio-map build fits a site's constants from its survey walks this
+way, and the evaluations from their training walks.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.datasets.ilc import Walk, imu_samples
 from app.engine.pdr import PdrParams, Steps, detect_steps
-from app.evaluation.metrics import wrap_deg
+from app.engine.samples import ImuSamples
 
 MIN_SEGMENT_M = 3.0
 """Waypoint segments shorter than this give no heading to compare with."""
@@ -41,6 +40,12 @@ class WalkPdr:
     n_steps: int
     duration_s: float
     segment_error: np.ndarray
+
+
+def wrap_deg(a: np.ndarray | float) -> np.ndarray:
+    """Wrap angles (degrees) into [-180, 180), so heading differences compare across north."""
+    # ((a + 180) mod 360) - 180
+    return np.mod(np.asarray(a, dtype=float) + 180.0, 360.0) - 180.0
 
 
 def circular_mean(deg: np.ndarray) -> float:
@@ -84,44 +89,35 @@ def walk_pdr(
     )
 
 
-def measure_walks(
-    walks: Iterable[Walk], params: PdrParams, *, rotation_vector: bool = True
-) -> list[WalkPdr]:
-    """Run PDR on each walk with at least two waypoints and inertial samples.
-
-    Without ``rotation_vector`` the rotation vector is withheld, so headings
-    come from the gyro + magnetometer complementary filter.
-    """
-    out = []
-    for walk in walks:
-        if walk.waypoints.shape[0] < 2 or walk.acc.shape[0] == 0:
-            continue
-        imu = imu_samples(walk)
-        if not rotation_vector:
-            imu.rot = np.full_like(imu.rot, np.nan)
-        steps = detect_steps(imu, params)
-        out.append(walk_pdr(walk.walk_id, walk.floor, walk.waypoints, steps))
-    return out
-
-
-def calibrate_k(results: list[WalkPdr]) -> float:
+def calibrate_k(results: Sequence[WalkPdr]) -> float:
     """Return Weinberg's K fitting total step length to total walked distance."""
     # K = Σ D_w / Σ_w Σ_steps (a_max - a_min)^(1/4)
     return sum(r.distance for r in results) / sum(r.stride_sum for r in results)
 
 
-def heading_offset(results: list[WalkPdr]) -> float:
+def heading_offset(results: Sequence[WalkPdr]) -> float:
     """Return the offset (degrees) to add to PDR headings: minus their mean segment error."""
     return -circular_mean(np.concatenate([r.segment_error for r in results]))
 
 
-def fit_pdr_constants(walks: Iterable[Walk], base: PdrParams) -> PdrParams:
-    """Return ``base`` with Weinberg's K and the heading offset fitted on ``walks``.
+def fit_pdr_constants(walks: Sequence[WalkPdr], base: PdrParams) -> PdrParams:
+    """Return ``base`` with Weinberg's K and the heading offset fitted on measured walks.
 
     The offset is a property of the building, K of the walkers' step scale:
-    both are learned once per site from its training walks.
+    both are learned once per site from its survey walks. With no walked
+    distance or no long segment, ``base``'s value is kept.
     """
-    results = measure_walks(walks, base)
-    return replace(
-        base, weinberg_k=calibrate_k(results), heading_offset_deg=heading_offset(results)
-    )
+    k = calibrate_k(walks) if sum(w.stride_sum for w in walks) > 0 else base.weinberg_k
+    segments = [w.segment_error for w in walks]
+    has_segments = any(e.size for e in segments)
+    offset = heading_offset(walks) if has_segments else base.heading_offset_deg
+    return replace(base, weinberg_k=k, heading_offset_deg=offset)
+
+
+def measure_walk(
+    walk_id: str, floor: str, waypoints: np.ndarray, imu: ImuSamples, params: PdrParams
+) -> WalkPdr | None:
+    """Detect a walk's steps and compare them with its waypoints; None without either."""
+    if waypoints.shape[0] < 2 or len(imu) == 0:
+        return None
+    return walk_pdr(walk_id, floor, waypoints, detect_steps(imu, params))

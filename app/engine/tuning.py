@@ -1,0 +1,147 @@
+"""A site's building-dependent constants, learned from its own surveys at radio-map build time.
+
+A building differs from the next in ways no default can know: how its
+floor plan is rotated against magnetic north (the PDR heading offset), how
+long its walkers' steps are (Weinberg's K), how far apart its fingerprints
+are in signal space (the number of WKNN neighbours, the HMM's emission
+weight) and how far the fingerprints themselves are from the truth (the
+accuracy floor). A radio-map build chooses each from the site's survey walks
+(walk-level folds: no walk both trains and tests), stores them with the maps,
+and the site's engines read them from there; the defaults only seed the
+choice and stand in where a site has no surveys.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+import numpy as np
+
+from app.engine.crossval import CrossValidation
+from app.engine.hmm.params import HmmParams
+from app.engine.pdr import PdrParams
+from app.engine.pdr_fit import WalkPdr, fit_pdr_constants, wrap_deg
+from app.engine.wknn import WknnParams
+
+HEADING_STD_RANGE_DEG = (5.0, 45.0)
+"""Bounds of the learned step heading standard deviation: below, one lucky survey
+would make the HMM trust its compass blindly; above, steps say nothing of direction."""
+
+WKNN_K_CANDIDATES = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20)
+"""Numbers of WKNN neighbours a build cross-validates."""
+
+EMISSION_WEIGHT_CANDIDATES = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0)
+"""HMM emission weights a build scores on held-out scans."""
+
+MAD_TO_STD = 1.4826
+"""Scale of the median absolute deviation to a Gaussian standard deviation."""
+
+
+@dataclass(frozen=True)
+class SiteTuning:
+    """Building-dependent constants chosen at build time.
+
+    Attributes
+    ----------
+    weinberg_k : float
+        Step length constant fitted to the surveys' walked distances.
+    heading_offset_deg : float
+        Rotation (degrees) from PDR headings to the site frame.
+    heading_std_deg : float
+        Spread (degrees) of survey segments' PDR headings about the truth
+        once the offset is applied: the HMM's step heading noise.
+    wknn_k : int
+        Number of WKNN neighbours (also the HMM's k-NN start).
+    emission_weight : float
+        Exponent tempering the HMM's per-scan likelihood.
+    accuracy_floor_m : float
+        Median held-out WKNN error (m), added in quadrature to the radius.
+    pdr_walks : int
+        Survey walks the PDR constants were fitted on (0: defaults kept).
+    """
+
+    weinberg_k: float
+    heading_offset_deg: float
+    heading_std_deg: float
+    wknn_k: int
+    emission_weight: float
+    accuracy_floor_m: float
+    pdr_walks: int = 0
+
+    @classmethod
+    def defaults(cls) -> SiteTuning:
+        """Return the engines' defaults: what a site without a build runs."""
+        pdr, hmm = PdrParams(), HmmParams()
+        return cls(
+            weinberg_k=pdr.weinberg_k,
+            heading_offset_deg=pdr.heading_offset_deg,
+            heading_std_deg=hmm.heading_std_deg,
+            wknn_k=WknnParams().k,
+            emission_weight=hmm.emission_weight,
+            accuracy_floor_m=hmm.accuracy_floor_m,
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        """Return the constants as JSON-ready numbers (stored in the build summary)."""
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> SiteTuning:
+        """Return the tuning stored by ``as_dict``; defaults for anything missing."""
+        base = asdict(cls.defaults())
+        known = {f.name for f in fields(cls)}
+        return cls(**(base | {k: v for k, v in (data or {}).items() if k in known}))
+
+    def pdr(self, base: PdrParams | None = None) -> PdrParams:
+        """Return PDR constants with the site's step length and heading offset."""
+        return replace(
+            base or PdrParams(),
+            weinberg_k=self.weinberg_k,
+            heading_offset_deg=self.heading_offset_deg,
+        )
+
+    def hmm(self, base: HmmParams | None = None) -> HmmParams:
+        """Return HMM constants with the site's neighbours, emission weight, noise and floor."""
+        return replace(
+            base or HmmParams(),
+            k=self.wknn_k,
+            emission_weight=self.emission_weight,
+            heading_std_deg=self.heading_std_deg,
+            accuracy_floor_m=self.accuracy_floor_m,
+        )
+
+    def wknn(self, base: WknnParams | None = None) -> WknnParams:
+        """Return WKNN constants with the site's number of neighbours."""
+        return replace(base or WknnParams(), k=self.wknn_k)
+
+
+def heading_spread(walks: Sequence[WalkPdr], offset_deg: float) -> float | None:
+    """Return the robust spread (degrees) of segment heading errors after the offset."""
+    errors = np.concatenate([w.segment_error for w in walks]) if walks else np.zeros(0)
+    if errors.size < 3:
+        return None
+    residual = wrap_deg(errors + offset_deg)
+    # σ ≈ 1.4826 median |r - median r|
+    spread = MAD_TO_STD * float(np.median(np.abs(residual - np.median(residual))))
+    return float(np.clip(spread, *HEADING_STD_RANGE_DEG))
+
+
+def tune_site(walks: Sequence[WalkPdr], held: CrossValidation | None) -> SiteTuning:
+    """Choose a site's constants from its measured survey walks and cross-validation."""
+    base = SiteTuning.defaults()
+    pdr = fit_pdr_constants(walks, PdrParams()) if walks else PdrParams()
+    spread = heading_spread(walks, pdr.heading_offset_deg)
+    k = held.best_k() if held is not None else base.wknn_k
+    weight = held.best_emission_weight() if held is not None else None
+    floor = float(np.median(held.by_k[k].error_m)) if held is not None else base.accuracy_floor_m
+    return SiteTuning(
+        weinberg_k=pdr.weinberg_k,
+        heading_offset_deg=pdr.heading_offset_deg,
+        heading_std_deg=spread if spread is not None else base.heading_std_deg,
+        wknn_k=k,
+        emission_weight=weight if weight is not None else base.emission_weight,
+        accuracy_floor_m=floor,
+        pdr_walks=len(walks),
+    )

@@ -1,0 +1,255 @@
+"""Site1's walk split measured through a running ``locus serve``, as any client sees it.
+
+A fresh server (its own SQLite database in a temporary folder, one filter
+worker) is started; the floors and the training walks go in as surveys
+through the HTTP API, the radio map is built through it (so the build chooses
+the site's constants from those surveys alone), and every held-out walk is
+posted as one-second batches with ``?wait=true``. The positions that come
+back are scored as the in-process rows are. Nothing of the engine is
+assembled here: the figure is the server's.
+
+WiFi goes as phones send it: every reading of every scan, stale cached ones
+included, either with the scan's time as ``t`` and the access point's own
+``last_seen`` (``scan``), or with each reading's last-seen time as its ``t``
+(``reading``), leaving the server to group readings into scans.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from app.datasets import data_dir
+from app.datasets.ilc import Walk, read_floor, read_walk, site_walks
+from app.engine.samples import Estimate
+from app.evaluation.ilc.experiment import add_split_arguments
+from app.evaluation.ilc.score import WalkScore, score_walk, summarise
+from app.evaluation.ilc.table import COLUMNS, table_cells
+from app.evaluation.split import split_ids, walk_unit
+from app.importers.ilc import WIFI_TIMES, survey_body, walk_samples
+from app.replay import replay_samples
+
+SITE_ID = "eval-site1"
+STARTUP_TIMEOUT_S = 60.0
+
+
+@dataclass(frozen=True)
+class ServerRun:
+    """What a through-server evaluation measured: the build's summary and each walk's score."""
+
+    build: dict[str, Any]
+    scores: list[WalkScore]
+    wall_s: float
+    positions: dict[str, list[dict[str, Any]]]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class LocalServer:
+    """A ``locus serve`` subprocess on a free port with its own database, stopped on exit."""
+
+    def __init__(self, home: Path, workers: int = 1) -> None:
+        self.port = _free_port()
+        self.key = secrets.token_urlsafe(24)
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = os.environ | {"LOCUS_ADMIN_KEY": self.key}
+        command = [sys.executable, "-m", "app.cli", "serve", "--port", str(self.port)]
+        command += ["--home", str(home), "--workers", str(workers)]
+        self.log = (home / "server.log").open("w")
+        self.process = subprocess.Popen(command, env=env, stdout=self.log, stderr=self.log)
+
+    def __enter__(self) -> LocalServer:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"locus serve exited with {self.process.returncode}")
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError("locus serve did not become ready")
+
+    def __exit__(self, *exc: object) -> None:
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+        self.log.close()
+
+
+def _upload_site(
+    http: httpx.Client, site_dir: Path, floors: Sequence[str], train: Sequence[Walk], wifi: str
+) -> None:
+    http.put(f"/v1/sites/{SITE_ID}", json={"name": "ILC site1"}).raise_for_status()
+    for name in floors:
+        geojson = read_floor(site_dir / name).geojson
+        http.put(f"/v1/sites/{SITE_ID}/floors/{name}", json=geojson).raise_for_status()
+
+    def body(walk: Walk) -> dict[str, Any]:
+        return survey_body(walk, device_id=f"survey-{walk.walk_id}", wifi_times=wifi)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for b in pool.map(body, train):
+            r = http.post(f"/v1/sites/{SITE_ID}/surveys", json=b)
+            if r.status_code != 201:
+                raise RuntimeError(f"survey {b['name']} refused: {r.status_code} {r.text[:300]}")
+
+
+def _estimates(positions: list[dict[str, Any]], floors: Sequence[str]) -> list[Estimate]:
+    index = {name: i for i, name in enumerate(floors)}
+
+    def num(v: float | None) -> float:
+        return float("nan") if v is None else float(v)
+
+    return [
+        Estimate(
+            t=int(p["t"]),
+            x=float(p["x"]),
+            y=float(p["y"]),
+            z=num(p.get("z")),
+            floor=index.get(p["floor_id"], -1),
+            heading=num(p.get("heading")),
+            accuracy=num(p.get("accuracy")),
+            speed=num(p.get("speed")),
+            method=str(p.get("method")),
+        )
+        for p in positions
+    ]
+
+
+def evaluate_through_server(
+    site_dir: Path,
+    floors: Sequence[str],
+    train: Sequence[Walk],
+    test: Sequence[Walk],
+    *,
+    wifi_times: str = "scan",
+    status: Callable[[str], None] = lambda _: None,
+    progress: Callable[[int], None] = lambda _: None,
+) -> ServerRun:
+    """Start a server, survey and build it from ``train``, replay ``test`` and score it."""
+    if wifi_times not in WIFI_TIMES:
+        raise ValueError(f"wifi_times must be one of {WIFI_TIMES}")
+    with tempfile.TemporaryDirectory(prefix="locus-eval-") as home, LocalServer(Path(home)) as srv:
+        headers = {"Authorization": f"Bearer {srv.key}"}
+        with httpx.Client(base_url=srv.url, headers=headers, timeout=1800) as http:
+            status(f"uploading {len(floors)} floors and {len(train)} surveys")
+            _upload_site(http, site_dir, floors, train, wifi_times)
+            status("building the radio map through the API")
+            r = http.post(f"/v1/sites/{SITE_ID}/radiomap/build")
+            r.raise_for_status()
+            build = r.json()
+            status("replaying the held-out walks")
+            started = time.perf_counter()
+            scores, positions = [], {}
+            for i, walk in enumerate(test):
+                got = replay_samples(
+                    http,
+                    walk_samples(walk, wifi_times=wifi_times),
+                    site_id=SITE_ID,
+                    device_id=f"replay-{walk.walk_id}",
+                    sent_at={"wifi": walk.wifi.t.tolist()},
+                )
+                positions[walk.walk_id] = got
+                scores.append(
+                    score_walk(walk.waypoints, floors.index(walk.floor), _estimates(got, floors))
+                )
+                progress(i + 1)
+            wall_s = time.perf_counter() - started
+    return ServerRun(build=build, scores=scores, wall_s=wall_s, positions=positions)
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    """Parse the options of ``locus eval ilc-server``."""
+    parser = argparse.ArgumentParser(
+        prog="locus eval ilc-server", description=__doc__.splitlines()[0] if __doc__ else None
+    )
+    add_split_arguments(parser, "evaluate on it instead of the test walks")
+    parser.add_argument("--limit", type=int, help="at most this many evaluated walks (id order)")
+    parser.add_argument("--floors", nargs="+", help="only these floors (a smaller building)")
+    parser.add_argument(
+        "--train-share",
+        type=float,
+        default=1.0,
+        help="survey only this share of the training walks (by walk id hash)",
+    )
+    parser.add_argument("--wifi-times", choices=WIFI_TIMES, default="scan")
+    parser.add_argument("--save", type=Path, help="write the positions and summary as JSON")
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Run site1's walk split through a fresh server and print its row and chosen constants."""
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    args = parse_args(argv)
+    console = Console(width=max(Console().width, 120))
+    site_dir = args.site or data_dir() / "ilc" / "site1"
+    pairs = [(f, p) for f, p in site_walks(site_dir) if not args.floors or f in args.floors]
+    ids = [path.name.split(".")[0] for _, path in pairs]
+    train, validation, test = split_ids(ids, args.test_fraction, args.validation_fraction)
+    # an independent hash of the id picks the surveyed share
+    train = [w for w in train if walk_unit(f"{w}/survey") < args.train_share]
+    held_ids = set(validation if args.validation_fraction > 0 else test)
+    surveyed = set(train) - set(validation)
+    walks = [read_walk(path, floor) for floor, path in pairs]
+    floors = sorted({f for f, _ in pairs}, key=lambda n: read_floor(site_dir / n).level)
+    held = sorted(
+        (w for w in walks if w.walk_id in held_ids and w.waypoints.shape[0] >= 2),
+        key=lambda w: w.walk_id,
+    )[: args.limit]
+    train_walks = [w for w in walks if w.walk_id in surveyed]
+    console.print(
+        f"{len(floors)} floors, {len(train_walks)} survey walks, {len(held)} held-out walks; "
+        f"WiFi timed by {args.wifi_times}"
+    )
+    with console.status("starting a server") as status, Progress(console=console) as bar:
+        task = bar.add_task("replay", total=len(held))
+        run = evaluate_through_server(
+            site_dir,
+            floors,
+            train_walks,
+            held,
+            wifi_times=args.wifi_times,
+            status=lambda s: status.update(s),
+            progress=lambda i: bar.update(task, completed=i),
+        )
+    console.print(f"build chose: {run.build.get('tuning')}")
+    console.print(f"candidates: {run.build.get('tuning_scores')}")
+    console.print(f"build accuracy: {run.build.get('accuracy')}")
+    row = summarise(f"server ({args.wifi_times})", run.scores, 0.0, 0)
+    table = Table(title=f"ILC site1 through locus serve, {len(held)} held-out walks")
+    for i, col in enumerate(COLUMNS):
+        table.add_column(col, justify="left" if i == 0 else "right")
+    table.add_row(*table_cells(row))
+    console.print(table)
+    console.print(f"replay wall time {run.wall_s:.0f} s")
+    if args.save:
+        args.save.write_text(json.dumps({"build": run.build, "positions": run.positions}))
+
+
+if __name__ == "__main__":
+    main()

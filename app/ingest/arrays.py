@@ -1,0 +1,37 @@
+"""Inertial samples as validated JSON turned into the engine's arrays.
+
+Shared by the workers (live batches) and the radio-map build (survey walks,
+whose steps fit the site's PDR constants).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from app.engine.samples import ImuSamples
+
+_NAN3 = (np.nan, np.nan, np.nan)
+
+
+def imu_arrays(imu: Sequence[dict[str, Any]]) -> ImuSamples:
+    """Return inertial samples as arrays (NaN where a sample lacks a sensor), in given order."""
+    return ImuSamples(
+        np.array([s["t"] for s in imu], np.int64),
+        np.array([s.get("acc") or _NAN3 for s in imu], float).reshape(-1, 3),
+        np.array([s.get("gyro") or _NAN3 for s in imu], float).reshape(-1, 3),
+        np.array([s.get("mag") or _NAN3 for s in imu], float).reshape(-1, 3),
+        np.array([_rot4(s.get("rot")) for s in imu], float).reshape(-1, 4),
+    )
+
+
+def _rot4(rot: list[float] | None) -> tuple[float, ...]:
+    if rot is None:
+        return (np.nan,) * 4
+    if len(rot) == 4:
+        return tuple(rot)
+    # w of a unit quaternion from its vector part (Android omits it on old devices)
+    w = float(np.sqrt(max(0.0, 1.0 - sum(v * v for v in rot))))
+    return (*rot, w)
