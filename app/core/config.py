@@ -193,6 +193,16 @@ class Settings(BaseSettings):
     )
     raster_cell: float = Field(default=0.25, gt=0, le=10, description="Floor raster cell (m).")
 
+    # Background jobs: radio-map builds and track fits.
+    job_lease_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=3600,
+        description="A process renews its unfinished radio-map builds and track fits every "
+        "third of this; one that nobody renewed this long lost its process (a restart or "
+        "crash) and is marked failed.",
+    )
+
     # Radio-map builds.
     radiomap_folds: int = Field(
         default=5,
