@@ -3,12 +3,16 @@ that hand them to routes."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, Request
 from sqlalchemy import Engine
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
@@ -21,6 +25,8 @@ from app.radiomaps.jobs import RadioMapBuilds
 from app.sites.cache import SiteVersions
 from app.tracks.jobs import TrackFitter
 from app.workers.runtime import Runtime
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -36,11 +42,12 @@ class AppState:
     runtime: Runtime | None
     track_fits: TrackFitter
     radiomap_builds: RadioMapBuilds
+    job_leases: asyncio.Task[None] | None = None
 
     @classmethod
     async def open(cls, settings: Settings) -> AppState:
         """Connect the database, start the workers (when this node runs or reaches any) and
-        the track-fit pool."""
+        the track-fit pool; fail the jobs a stopped process left, and keep this one's alive."""
         engine = make_engine(settings.resolved_database_url)
         sessions = make_sessionmaker(engine)
         metrics = Metrics()
@@ -56,7 +63,7 @@ class AppState:
         keys = KeyCache(
             sessions, ttl_s=settings.key_cache_ttl_s, max_entries=settings.key_cache_size
         )
-        return cls(
+        state = cls(
             settings=settings,
             engine=engine,
             sessions=sessions,
@@ -67,10 +74,32 @@ class AppState:
             track_fits=track_fits,
             radiomap_builds=RadioMapBuilds(settings, sessions, sites),
         )
+        await state.tend_jobs()
+        state.job_leases = asyncio.create_task(state._keep_jobs())
+        return state
+
+    async def tend_jobs(self) -> None:
+        """Renew this process's background jobs and fail those whose process is gone."""
+        try:
+            failed = await self.track_fits.tend() + await self.radiomap_builds.tend()
+        except SQLAlchemyError:  # the database may be away for a while; the next round retries
+            log.exception("could not renew the background jobs")
+            return
+        if failed:
+            log.warning("marked %d background jobs of stopped processes failed", failed)
+
+    async def _keep_jobs(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.job_lease_s / 3)
+            await self.tend_jobs()
 
     async def close(self) -> None:
-        """Stop the track fits and the workers (they snapshot their devices); close the
-        database."""
+        """Stop the job leases, the track fits and the workers (they snapshot their devices);
+        close the database."""
+        if self.job_leases is not None:
+            self.job_leases.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self.job_leases
         self.track_fits.stop()
         if self.runtime is not None:
             await self.runtime.stop()

@@ -62,6 +62,8 @@ def test_the_accepted_brokers_pass(broker: str) -> None:
         ("max_samples", 0),
         ("shard_backlog", 0),
         ("reorder_window_ms", -1),
+        ("job_lease_s", 0),
+        ("time_outlier_s", 0),
     ],
 )
 def test_a_limit_out_of_its_range_is_rejected(field: str, value: float) -> None:

@@ -147,6 +147,15 @@ class Settings(BaseSettings):
         description="A WiFi reading whose last_seen is older than this before its scan's t is "
         "a cached repeat of an earlier scan, not a new measurement, and is dropped.",
     )
+    time_outlier_s: float = Field(
+        default=3600.0,
+        gt=0,
+        le=30 * 24 * 3600,
+        description="A sample this far from the median time of its batch or survey comes from "
+        "a clock that jumped: it is dropped (code time_outlier), and a survey waypoint that far "
+        "refuses the survey. Times are compared within the body, never with the server's "
+        "clock, so old recordings replay; a survey may span twice this.",
+    )
     reorder_window_ms: int = Field(
         default=2000,
         ge=0,
@@ -192,6 +201,16 @@ class Settings(BaseSettings):
         description="Measurement time between periodic device snapshots.",
     )
     raster_cell: float = Field(default=0.25, gt=0, le=10, description="Floor raster cell (m).")
+
+    # Background jobs: radio-map builds and track fits.
+    job_lease_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=3600,
+        description="A process renews its unfinished radio-map builds and track fits every "
+        "third of this; one that nobody renewed this long lost its process (a restart or "
+        "crash) and is marked failed.",
+    )
 
     # Radio-map builds.
     radiomap_folds: int = Field(

@@ -24,7 +24,7 @@ class Metrics:
         )
         self.ingest_dropped = Counter(
             "locus_ingest_dropped_samples",
-            "Samples (or their optional fields) dropped for an impossible value",
+            "Samples (or their optional fields) dropped by the per-sample policy, by reason",
             ["kind", "reason"],
             registry=r,
         )

@@ -6,20 +6,41 @@ produce (an RSSI above 0 dBm, a transmit power of +86 dBm, a NaN sent as the
 string ``"NaN"``) is a fault of one sample, not of the batch: that sample is
 left out, or only its optional field where the rest is sound, and the drop is
 reported to the client and counted in metrics by reason.
+
+Times are judged within the body, never against the server's clock, so a
+recording from years ago replays: ``t`` is milliseconds since the epoch, and a
+body whose median time reads as seconds, microseconds or nanoseconds since the
+epoch is refused whole, naming the unit. A sample far from the body's median
+time (a clock that jumped) is dropped like an impossible value; an *anchor*
+that far (a survey's waypoint, which places every sample around it) refuses
+the body.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 from typing import Any, TypeVar
 
+import numpy as np
 from pydantic import BaseModel, ValidationError
 from pydantic_core import ErrorDetails
+
+from app.core.errors import Invalid
 
 VALUE_ERRORS = frozenset(
     {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"}
 )
 """Pydantic error types that judge a well-typed value impossible, not a malformed body."""
+
+MIN_T_MS = 946_684_800_000
+"""2000-01-01 in ms: anything earlier is a device clock that was never set."""
+
+MAX_T_MS = 10**14
+"""Year 5138 in ms: a median time beyond it is in a finer unit."""
+
+OTHER_UNITS = (("seconds", 1e-3), ("microseconds", 1e3), ("nanoseconds", 1e6))
+"""Units a device clock is mistakenly sent in, with their count per millisecond."""
 
 MAX_REPORTED = 100
 """At most this many drops are listed in an answer; ``dropped_total`` gives the count."""
@@ -109,20 +130,147 @@ def _drop(kind: str, index: int, field: str, reason: tuple[str, str], what: str)
     }
 
 
-def validate_screened(
-    model: type[M], raw: bytes | str, kinds: dict[str, type[BaseModel]]
+def body_indices(kind: str, count: int, earlier: list[Drop]) -> list[int]:
+    """Return the body indices of the ``count`` samples of ``kind`` left after the samples
+    dropped ``earlier``, so that every drop names the sample as the client sent it."""
+    gone = {d["index"] for d in earlier if d["kind"] == kind and d["dropped"] == "sample"}
+    return list(itertools.islice((i for i in itertools.count() if i not in gone), count))
+
+
+def _median(times: np.ndarray) -> float:
+    """Return the lower median: a time of the body itself, so one sample at least is near it."""
+    return float(np.partition(times, (times.size - 1) // 2)[(times.size - 1) // 2])
+
+
+def check_time_units(times: np.ndarray) -> None:
+    """Raise Invalid when the median of ``times`` reads as another unit than milliseconds
+    since the epoch (a time from 2000 to 5138 in that unit)."""
+    if times.size == 0:
+        return
+    median = _median(times)
+    for unit, per_ms in OTHER_UNITS:
+        if MIN_T_MS * per_ms <= median < MAX_T_MS * per_ms:
+            message = (
+                f"sample times look like {unit} since the epoch (median t {median:.0f}); "
+                "t must be milliseconds since the epoch"
+            )
+            raise Invalid(
+                message,
+                code="timestamp_units",
+                details=[{"loc": ["t"], "msg": message, "type": "timestamp_units"}],
+            )
+
+
+def _raw_times(data: Any) -> np.ndarray:
+    """Return every number given as ``t`` in the lists of a JSON body (up to nanoseconds in
+    the year 5138: beyond, a float would not hold it)."""
+    lists = data.values() if isinstance(data, dict) else ()
+    items = (i for v in lists if isinstance(v, list) for i in v if isinstance(i, dict))
+    times = (i.get("t") for i in items)
+    numbers = (t for t in times if isinstance(t, int | float) and not isinstance(t, bool))
+    return np.array([t for t in numbers if abs(t) < MAX_T_MS * 1e6], dtype=float)
+
+
+def _duration(ms: float) -> str:
+    s = ms / 1000
+    if s >= 86_400:
+        return f"{s / 86_400:.1f} days"
+    if s >= 3600:
+        return f"{s / 3600:.1f} hours"
+    return f"{s:.0f} s"
+
+
+def _offset(t: int, median: float, max_offset_ms: int) -> str:
+    return (
+        f"t={t} is {_duration(abs(t - median))} from the median time ({median:.0f}); "
+        f"at most {_duration(max_offset_ms)}"
+    )
+
+
+def screen_times(
+    body: M,
+    kinds: tuple[str, ...],
+    anchors: tuple[str, ...],
+    *,
+    max_offset_ms: int,
+    earlier: list[Drop],
 ) -> tuple[M, list[Drop]]:
-    """Validate a JSON body, dropping impossible samples; raise ValidationError otherwise.
+    """Return ``body`` without the samples of ``kinds`` more than ``max_offset_ms`` from the
+    median time of its samples and ``anchors``, and what went.
+
+    Raise Invalid when the times are in another unit, or an item of ``anchors`` is that far.
+    ``earlier`` are the drops before, for the samples' body indices.
+    """
+    times = {k: np.fromiter((s.t for s in getattr(body, k)), np.int64) for k in (*anchors, *kinds)}
+    every = np.concatenate(list(times.values()))
+    check_time_units(every)
+    if every.size == 0:
+        return body, []
+    median = _median(every)
+    far = {k: np.flatnonzero(np.abs(t - median) > max_offset_ms) for k, t in times.items()}
+    for kind in anchors:
+        if far[kind].size:
+            offsets = {
+                int(i): _offset(int(times[kind][i]), median, max_offset_ms) for i in far[kind]
+            }
+            first = min(offsets)
+            raise Invalid(
+                f"{kind}[{first}]: {offsets[first]}",
+                code="clock_skew",
+                details=[
+                    {"loc": [kind, i, "t"], "msg": msg, "type": "clock_skew"}
+                    for i, msg in offsets.items()
+                ],
+            )
+    update: dict[str, list[Any]] = {}
+    drops: list[Drop] = []
+    for kind in (k for k in kinds if far[k].size):
+        index = body_indices(kind, times[kind].size, earlier)
+        for i in far[kind]:
+            reason = _offset(int(times[kind][i]), median, max_offset_ms)
+            drops.append(_drop(kind, index[i], "t", ("time_outlier", reason), "sample"))
+        keep = np.ones(times[kind].size, dtype=bool)
+        keep[far[kind]] = False
+        update[kind] = list(itertools.compress(getattr(body, kind), keep))
+    return (body.model_copy(update=update) if update else body), drops
+
+
+def _loads(raw: bytes | str) -> Any:
+    try:
+        return json.loads(raw)
+    except ValueError:
+        return None
+
+
+def validate_screened(
+    model: type[M],
+    raw: bytes | str,
+    kinds: dict[str, type[BaseModel]],
+    *,
+    max_offset_ms: int,
+    anchors: tuple[str, ...] = (),
+) -> tuple[M, list[Drop]]:
+    """Validate a JSON body, dropping impossible samples and samples far from the body's
+    time; raise ValidationError for a structural fault, Invalid for a clock in another unit
+    or an anchor far off (see ``screen_times``).
 
     The common case, a body with nothing to drop, takes pydantic's JSON fast path.
     """
+    drops: list[Drop] = []
     try:
-        return model.model_validate_json(raw), []
+        body = model.model_validate_json(raw)
     except ValidationError as exc:
-        if any(e["type"] not in VALUE_ERRORS for e in exc.errors()):
+        data = _loads(raw)
+        # times in seconds fail as values, from time.time() as types: name the unit first
+        check_time_units(_raw_times(data))
+        if data is None or any(e["type"] not in VALUE_ERRORS for e in exc.errors()):
             raise
-    data, drops = screen_samples(json.loads(raw), kinds)
-    return model.model_validate(data), drops
+        data, drops = screen_samples(data, kinds)
+        body = model.model_validate(data)
+    body, far = screen_times(
+        body, tuple(kinds), anchors, max_offset_ms=max_offset_ms, earlier=drops
+    )
+    return body, drops + far
 
 
 def report(drops: list[Drop]) -> dict[str, Any]:

@@ -52,7 +52,12 @@ def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[s
     """Validate a device's batch under the per-sample policy, leave out cached WiFi repeats;
     count and report the drops."""
     try:
-        batch, drops = validate_screened(IngestBatch, raw, SAMPLE_MODELS)
+        batch, drops = validate_screened(
+            IngestBatch,
+            raw,
+            SAMPLE_MODELS,
+            max_offset_ms=round(state.settings.time_outlier_s * 1000),
+        )
     except ValidationError as exc:
         raise Invalid(
             "request failed validation", details=validation_details(exc.errors(include_url=False))

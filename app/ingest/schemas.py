@@ -10,11 +10,9 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
 
+from app.core.sample_policy import MIN_T_MS
 from app.core.schemas import DeviceIdentifier, DroppedSample, Identifier
 from app.positions.schemas import Position
-
-# 2000-01-01 in ms: anything earlier is a device clock that was never set.
-MIN_T_MS = 946_684_800_000
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Rssi = Annotated[float, Field(ge=-150, le=0, allow_inf_nan=False)]

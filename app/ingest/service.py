@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import itertools
 from typing import Any
 
 from app.core.config import Settings
 from app.core.errors import Forbidden, Invalid, NotFound, TooLarge
+from app.core.sample_policy import body_indices
 from app.core.security import Principal
 from app.core.time import now_ms
 from app.ingest.schemas import SAMPLE_KINDS, IngestBatch, LocatorBatch, RadioSample
@@ -33,11 +33,9 @@ def drop_stale_wifi(
     than ``max_age_ms`` before the scan completed were measured by an earlier scan.
     ``earlier_drops`` (the per-sample policy's) keep the reported indices those of the body.
     """
-    gone = {d["index"] for d in earlier_drops if d["kind"] == "wifi" and d["dropped"] == "sample"}
-    body_index = (i for i in itertools.count() if i not in gone)
     kept: list[RadioSample] = []
     drops: list[dict[str, Any]] = []
-    for index, s in zip(body_index, wifi, strict=False):
+    for index, s in zip(body_indices("wifi", len(wifi), earlier_drops), wifi, strict=True):
         if s.last_seen is not None and s.t - s.last_seen > max_age_ms:
             drops.append(
                 {

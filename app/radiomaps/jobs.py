@@ -11,8 +11,12 @@ from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
 from app.core.config import Settings
+from app.core.db import session_scope
 from app.core.errors import DomainError
+from app.core.jobs import tend_jobs
+from app.core.time import utcnow
 from app.radiomaps import service
+from app.radiomaps.models import RadioMapJob
 from app.sites.cache import SiteVersions
 
 log = logging.getLogger(__name__)
@@ -28,7 +32,20 @@ class RadioMapBuilds:
         self.sessions = sessions
         self.sites = sites
         self._locks: dict[str, asyncio.Lock] = {}
-        self._running: set[asyncio.Task[None]] = set()
+        self._running: dict[str, asyncio.Task[None]] = {}
+        """The unfinished jobs of this process, by id."""
+
+    async def tend(self) -> int:
+        """Renew this process's unfinished build jobs and fail those no process renewed for a
+        lease (see ``app.core.jobs``); return how many failed."""
+        alive = tuple(self._running)
+        return await run_in_threadpool(self._tend, alive)
+
+    def _tend(self, alive: tuple[str, ...]) -> int:
+        with session_scope(self.sessions) as db:
+            return tend_jobs(
+                db, RadioMapJob, alive=alive, now=utcnow(), lease_s=self.settings.job_lease_s
+            )
 
     def _lock(self, site_id: str) -> asyncio.Lock:
         # one build per site at a time in this process: two would replace each other's rows
@@ -62,8 +79,8 @@ class RadioMapBuilds:
     def start(self, site_id: str, job_id: str) -> None:
         """Run a recorded, queued job in the background."""
         task = asyncio.create_task(self._run(site_id, job_id))
-        self._running.add(task)
-        task.add_done_callback(self._running.discard)
+        self._running[job_id] = task
+        task.add_done_callback(lambda _: self._running.pop(job_id, None))
 
     async def _run(self, site_id: str, job_id: str) -> None:
         last = [0.0]

@@ -35,7 +35,14 @@ async def create_survey(
     if len(raw) > settings.survey_max_bytes:
         raise TooLarge(f"survey larger than {settings.survey_max_bytes} bytes")
     try:
-        body, drops = await run_in_threadpool(validate_screened, SurveyCreate, raw, SAMPLE_MODELS)
+        body, drops = await run_in_threadpool(
+            validate_screened,
+            SurveyCreate,
+            raw,
+            SAMPLE_MODELS,
+            max_offset_ms=round(settings.time_outlier_s * 1000),
+            anchors=("waypoints",),
+        )
     except ValidationError as exc:
         raise Invalid(
             "survey failed validation", details=validation_details(exc.errors(include_url=False))

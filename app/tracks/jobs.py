@@ -14,7 +14,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
 from app.core.db import session_scope
-from app.core.time import now_ms
+from app.core.jobs import tend_jobs
+from app.core.time import now_ms, utcnow
 from app.positions.models import PositionRecord
 from app.tracks.fitting import run_fit
 from app.tracks.models import Track
@@ -33,7 +34,8 @@ class TrackFitter:
         self.sessions = sessions
         self.publish = publish
         self.pool: ProcessPoolExecutor | None = None
-        self._running: set[asyncio.Task[None]] = set()
+        self._running: dict[str, asyncio.Task[None]] = {}
+        """The unfinished jobs of this process, by id."""
 
     def start(self) -> None:
         """Create the pool (processes start on first use)."""
@@ -49,8 +51,20 @@ class TrackFitter:
     def submit(self, track_id: str, job: dict[str, Any]) -> None:
         """Fit a stored, queued track in the background."""
         task = asyncio.create_task(self.run(track_id, job))
-        self._running.add(task)
-        task.add_done_callback(self._running.discard)
+        self._running[track_id] = task
+        task.add_done_callback(lambda _: self._running.pop(track_id, None))
+
+    async def tend(self) -> int:
+        """Renew this process's unfinished fits and fail those no process renewed for a lease
+        (see ``app.core.jobs``); return how many failed."""
+        alive = tuple(self._running)
+        return await asyncio.to_thread(self._tend, alive)
+
+    def _tend(self, alive: tuple[str, ...]) -> int:
+        with session_scope(self.sessions) as db:
+            return tend_jobs(
+                db, Track, alive=alive, now=utcnow(), lease_s=self.settings.job_lease_s
+            )
 
     async def run(self, track_id: str, job: dict[str, Any]) -> None:
         """Fit one queued track, store the result and publish the device's new position."""

@@ -139,6 +139,75 @@ def test_cached_wifi_repeats_are_left_out_by_their_last_seen(
     assert r.status_code == 422 and r.json()["error"]["details"][0]["code"] == "stale"
 
 
+DAY_MS = 24 * 3600 * 1000
+
+
+@pytest.mark.parametrize(
+    ("unit", "scale"),
+    [("seconds", 1e-3), ("microseconds", 1e3), ("nanoseconds", 1e6)],
+)
+@pytest.mark.parametrize("as_float", [False, True])
+def test_times_in_another_unit_refuse_the_batch_naming_the_unit(
+    client: TestClient, admin: dict, site_id: str, unit: str, scale: float, as_float: bool
+) -> None:
+    device = f"{site_id}-units"
+    body = batch(site_id, device)
+    for s in body["wifi"]:
+        # time.time() in Python gives float seconds
+        s["t"] = s["t"] * scale if as_float else int(s["t"] * scale)
+    r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["code"] == "timestamp_units"
+    assert f"sample times look like {unit} since the epoch" in error["message"]
+    assert "t must be milliseconds since the epoch" in error["message"]
+    assert (
+        client.get(f"/v1/sites/{site_id}/devices/{device}/position", headers=admin).status_code
+        == 404
+    )
+
+
+def test_a_sample_far_from_its_batch_is_dropped_not_the_batch(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    body = batch(site_id, f"{site_id}-jump", seconds=17)
+    body["wifi"] = body["wifi"][:50]
+    body["wifi"][20]["t"] += 10 * DAY_MS
+    r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    assert answer["accepted"] == 49 and answer["dropped_total"] == 1
+    (outlier,) = answer["dropped"]
+    assert (outlier["kind"], outlier["index"], outlier["field"], outlier["dropped"]) == (
+        "wifi",
+        20,
+        "t",
+        "sample",
+    )
+    assert outlier["code"] == "time_outlier"
+    assert "is 10.0 days from the median time" in outlier["reason"]
+    assert "at most 1.0 hours" in outlier["reason"]
+    assert answer["positions"] and max(p["t"] for p in answer["positions"]) < T0 + DAY_MS
+    metrics = client.get("/metrics", headers=admin).text
+    assert 'locus_ingest_dropped_samples_total{kind="wifi",reason="time_outlier"}' in metrics
+
+
+def test_a_long_batch_of_old_scans_is_kept_whole(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    # a phone that buffered 50 minutes offline, uploading years later; readings last heard
+    # a little before their scan
+    wifi = [
+        {"t": T0 + 60_000 * k, "id": ap, "rssi": -55, "last_seen": T0 + 60_000 * k - 1500}
+        for k in range(50)
+        for ap in AP
+    ]
+    body = {"device_id": f"{site_id}-buffered", "site_id": site_id, "wifi": wifi}
+    r = client.post("/v1/ingest", json=body, headers=admin)
+    assert r.status_code == 202, r.text
+    assert r.json() == {"accepted": 150, "late": 0}
+
+
 def test_wait_returns_positions_in_time_order(
     client: TestClient, admin: dict, site_id: str
 ) -> None:

@@ -81,6 +81,76 @@ def test_a_misconfigured_beacon_drops_its_field_not_the_survey(
     assert "tx_power" not in stored["ble"][0] and stored["ble"][1]["tx_power"] == -59
 
 
+DAY_MS = 24 * 3600 * 1000
+
+
+def _survey_count(client: TestClient, admin: dict, site_id: str) -> int:
+    return client.get(f"/v1/sites/{site_id}/surveys", headers=admin).json()["total"]
+
+
+def test_a_survey_timed_in_seconds_is_refused_naming_the_unit(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    body = _survey()
+    for item in (*body["waypoints"], *body["wifi"], *body["imu"]):
+        item["t"] //= 1000
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["code"] == "timestamp_units"
+    assert error["message"].startswith("sample times look like seconds since the epoch")
+    assert _survey_count(client, admin, site_id) == 0
+
+
+def test_a_sample_far_from_the_survey_is_dropped_a_waypoint_refuses_it(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    body = _survey()
+    body["wifi"] += [
+        {"t": T0 + 900, "id": "aa:00:00:00:00:02", "rssi": 20},
+        {"t": T0 + 10 * DAY_MS, "id": "aa:00:00:00:00:03", "rssi": -70},
+    ]
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+    assert r.status_code == 201, r.text
+    answer = r.json()
+    assert answer["counts"]["wifi"] == 1
+    assert [(d["index"], d["field"], d["code"]) for d in answer["dropped"]] == [
+        (1, "rssi", "less_than_equal"),
+        (2, "t", "time_outlier"),
+    ]
+    late_waypoint = _survey()
+    late_waypoint["waypoints"][1]["t"] += 10 * DAY_MS
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=late_waypoint, headers=admin)
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["code"] == "clock_skew"
+    assert error["message"].startswith("waypoints[1]: t=")
+    assert "is 10.0 days from the median time" in error["message"]
+    assert error["details"][0]["loc"] == ["waypoints", 1, "t"]
+    assert _survey_count(client, admin, site_id) == 1
+
+
+def test_a_survey_walked_for_forty_minutes_is_kept_whole(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    minute = 60_000
+    body = _survey() | {
+        "waypoints": [{"t": T0 + 10 * minute * k, "x": 1.0 + 2 * k, "y": 8.0} for k in range(5)],
+        "wifi": [
+            {
+                "t": T0 + minute * k,
+                "id": "aa:00:00:00:00:01",
+                "rssi": -61,
+                "last_seen": T0 + minute * k - 1500,
+            }
+            for k in range(41)
+        ],
+    }
+    r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
+    assert r.status_code == 201, r.text
+    assert r.json()["dropped"] is None and r.json()["counts"]["wifi"] == 41
+
+
 SITE1 = data_dir() / "ilc" / "site1"
 
 
