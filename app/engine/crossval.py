@@ -67,12 +67,16 @@ class CrossValidation:
         Mean log-score of the surveyed position under one scan's emission
         posterior, per candidate emission weight (higher is better); empty
         when not asked for.
+    floor_score : dict of float to float
+        Mean log-probability of the surveyed floor under one scan's floor
+        posterior, per candidate weight.
     emission_scans : int
         Held-out scans the emission scores average.
     """
 
     by_k: dict[int, HeldOut]
     emission_score: dict[float, float]
+    floor_score: dict[float, float]
     emission_scans: int
 
     def best_k(self) -> int:
@@ -81,9 +85,16 @@ class CrossValidation:
 
     def best_emission_weight(self) -> float | None:
         """Return the emission weight with the best held-out log-score, if any was scored."""
-        if not self.emission_score:
-            return None
-        return max(self.emission_score, key=lambda w: (self.emission_score[w], -w))
+        return _best(self.emission_score)
+
+    def best_floor_weight(self) -> float | None:
+        """Return the floor evidence weight with the best held-out log-score, if any."""
+        return _best(self.floor_score)
+
+
+def _best(scores: dict[float, float]) -> float | None:
+    """Return the weight of the highest score (the smaller weight on ties), None for none."""
+    return max(scores, key=lambda w: (scores[w], -w)) if scores else None
 
 
 def nearest_fingerprints(
@@ -204,14 +215,23 @@ def emission_log_scores(
     *,
     max_scans: int,
     kernel_m: float,
-) -> tuple[np.ndarray, int]:
-    """Return the summed log-score per candidate weight over (up to ``max_scans``) held scans.
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Return summed log-scores of position and of floor per candidate weight.
 
-    A scan's emission posterior on its surveyed floor is ``p_j ∝ L_j^w``; its
-    score is ``ln Σ_j p_j exp(-|x_j - x|² / 2 s²)``, how much of the posterior
-    lies within about ``kernel_m`` of the surveyed position. The weight that
-    scores best is the tempering under which one scan's posterior is as sure
-    as it should be, neither spread over the floor nor a needle beside the truth.
+    Over (up to ``max_scans``) held-out scans on mapped floors: a scan's
+    emission posterior on its surveyed floor is ``p_j ∝ L_j^w``, scored by
+    ``ln Σ_j p_j exp(-|x_j - x|² / 2 s²)``, how much of it lies within about
+    ``kernel_m`` of the surveyed position; its floor posterior is
+    ``P_f ∝ mean_j L_fj^w``, scored by ``ln P`` of the surveyed floor. The
+    weight that scores best is the tempering under which one scan is as sure
+    as it should be, neither spread out nor a needle beside the truth.
+
+    Returns
+    -------
+    position, floor : ndarray, shape (W,)
+        Summed log-scores per weight.
+    n : int
+        Scans scored.
     """
     model = EmissionModel(maps, replace(hmm_params, emission_weight=1.0))
     position = {m.floor: i for i, m in enumerate(maps)}
@@ -219,20 +239,29 @@ def emission_log_scores(
     if rows.size > max_scans:
         rows = rows[np.linspace(0, rows.size - 1, max_scans).astype(np.int64)]
     w = np.asarray(weights, dtype=float)[:, None]
-    total = np.zeros(w.shape[0])
+    pos_total = np.zeros(w.shape[0])
+    floor_total = np.zeros(w.shape[0])
     order = np.argsort(held.reading_scan, kind="stable")
     starts = np.searchsorted(held.reading_scan[order], np.arange(held.n_scans + 1))
+    scored = 0
     for r in rows:
         readings = order[starts[r] : starts[r + 1]]
         if readings.size == 0:
             continue
+        scored += 1
         f = position[int(held.scan_floor[r])]
-        ll = model.log_likelihood(f, held.reading_tx[readings], held.reading_rssi[readings])
+        tx, rssi = held.reading_tx[readings], held.reading_rssi[readings]
+        lls = [model.log_likelihood(g, tx, rssi) for g in range(len(maps))]
         # ln K_j = -|x_j - x|² / 2 s²
         log_kernel = -0.5 * np.sum((model.xy[f] - held.scan_xy[r]) ** 2, axis=1) / kernel_m**2
-        scaled = w * ll[None, :]
-        total += logsumexp(scaled + log_kernel[None, :], axis=1) - logsumexp(scaled, axis=1)
-    return total, int(rows.size)
+        scaled = w * lls[f][None, :]
+        pos_total += logsumexp(scaled + log_kernel[None, :], axis=1) - logsumexp(scaled, axis=1)
+        # ln mean_j L_j^w per floor, then ln P(true floor)
+        marginal = np.stack(
+            [logsumexp(w * ll[None, :], axis=1) - np.log(ll.size) for ll in lls], axis=1
+        )
+        floor_total += marginal[:, f] - logsumexp(marginal, axis=1)
+    return pos_total, floor_total, scored
 
 
 def cross_validate(
@@ -278,6 +307,7 @@ def cross_validate(
     oks: dict[int, list[np.ndarray]] = {k: [] for k in ks}
     rows: list[np.ndarray] = []
     scores = np.zeros(len(weights))
+    floor_scores = np.zeros(len(weights))
     scored = 0
     n_folds = min(folds, np.unique(survey.scan_walk).size)
     for done, (maps, test) in enumerate(walk_folds(survey, plans, params, folds), start=1):
@@ -291,7 +321,7 @@ def cross_validate(
             oks[k].append(floor == held.scan_floor)
         rows.append(np.flatnonzero(test))
         if emission is not None and len(weights):
-            total, n = emission_log_scores(
+            total, floor_total, n = emission_log_scores(
                 maps,
                 held,
                 emission,
@@ -300,6 +330,7 @@ def cross_validate(
                 kernel_m=emission_kernel_m,
             )
             scores += total
+            floor_scores += floor_total
             scored += n
         if progress is not None:
             progress(done / n_folds)
@@ -309,9 +340,10 @@ def cross_validate(
     by_k = {
         k: HeldOut(np.concatenate(errors[k]), np.concatenate(oks[k]), scan, n_folds) for k in ks
     }
-    emission_score = (
-        {float(w): float(v / scored) for w, v in zip(weights, scores, strict=True)}
-        if scored
-        else {}
-    )
-    return CrossValidation(by_k, emission_score, scored)
+
+    def per_weight(totals: np.ndarray) -> dict[float, float]:
+        if not scored:
+            return {}
+        return {float(w): float(v / scored) for w, v in zip(weights, totals, strict=True)}
+
+    return CrossValidation(by_k, per_weight(scores), per_weight(floor_scores), scored)

@@ -32,8 +32,8 @@ would make the HMM trust its compass blindly; above, steps say nothing of direct
 WKNN_K_CANDIDATES = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20)
 """Numbers of WKNN neighbours a build cross-validates."""
 
-EMISSION_WEIGHT_CANDIDATES = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0)
-"""HMM emission weights a build scores on held-out scans."""
+EMISSION_WEIGHT_CANDIDATES = (0.02, 0.03, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0)
+"""HMM emission (and floor evidence) weights a build scores on held-out scans."""
 
 MAD_TO_STD = 1.4826
 """Scale of the median absolute deviation to a Gaussian standard deviation."""
@@ -55,7 +55,9 @@ class SiteTuning:
     wknn_k : int
         Number of WKNN neighbours (also the HMM's k-NN start).
     emission_weight : float
-        Exponent tempering the HMM's per-scan likelihood.
+        Exponent tempering the HMM's per-scan likelihood of positions.
+    floor_weight : float
+        Exponent tempering it when floors are weighed against each other.
     accuracy_floor_m : float
         Median held-out WKNN error (m), added in quadrature to the radius.
     pdr_walks : int
@@ -67,6 +69,7 @@ class SiteTuning:
     heading_std_deg: float
     wknn_k: int
     emission_weight: float
+    floor_weight: float
     accuracy_floor_m: float
     pdr_walks: int = 0
 
@@ -80,6 +83,7 @@ class SiteTuning:
             heading_std_deg=hmm.heading_std_deg,
             wknn_k=WknnParams().k,
             emission_weight=hmm.emission_weight,
+            floor_weight=hmm.floor_weight,
             accuracy_floor_m=hmm.accuracy_floor_m,
         )
 
@@ -103,11 +107,12 @@ class SiteTuning:
         )
 
     def hmm(self, base: HmmParams | None = None) -> HmmParams:
-        """Return HMM constants with the site's neighbours, emission weight, noise and floor."""
+        """Return HMM constants with the site's neighbours, weights, heading noise and floor."""
         return replace(
             base or HmmParams(),
             k=self.wknn_k,
             emission_weight=self.emission_weight,
+            floor_weight=self.floor_weight,
             heading_std_deg=self.heading_std_deg,
             accuracy_floor_m=self.accuracy_floor_m,
         )
@@ -135,6 +140,7 @@ def tune_site(walks: Sequence[WalkPdr], held: CrossValidation | None) -> SiteTun
     spread = heading_spread(walks, pdr.heading_offset_deg)
     k = held.best_k() if held is not None else base.wknn_k
     weight = held.best_emission_weight() if held is not None else None
+    floor_weight = held.best_floor_weight() if held is not None else None
     floor = float(np.median(held.by_k[k].error_m)) if held is not None else base.accuracy_floor_m
     return SiteTuning(
         weinberg_k=pdr.weinberg_k,
@@ -142,6 +148,7 @@ def tune_site(walks: Sequence[WalkPdr], held: CrossValidation | None) -> SiteTun
         heading_std_deg=spread if spread is not None else base.heading_std_deg,
         wknn_k=k,
         emission_weight=weight if weight is not None else base.emission_weight,
+        floor_weight=floor_weight if floor_weight is not None else base.floor_weight,
         accuracy_floor_m=floor,
         pdr_walks=len(walks),
     )

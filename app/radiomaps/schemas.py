@@ -71,6 +71,7 @@ class SiteTuningRead(BaseModel):
     heading_std_deg: float
     wknn_k: int
     emission_weight: float
+    floor_weight: float
     accuracy_floor_m: float
     pdr_walks: int
 
@@ -80,6 +81,7 @@ class TuningScores(BaseModel):
 
     wknn_mean_error_m_by_k: dict[str, float | None]
     emission_log_score_by_weight: dict[str, float | None]
+    floor_log_score_by_weight: dict[str, float | None]
     emission_scans: int
 
 

@@ -38,7 +38,7 @@ from app.engine.radiomap import (
 from app.engine.samples import ImuSamples, RssiReadings
 from app.engine.tuning import EMISSION_WEIGHT_CANDIDATES, WKNN_K_CANDIDATES, tune_site
 from app.engine.wknn import WknnParams
-from app.ingest.arrays import imu_arrays
+from app.ingest.arrays import imu_arrays, wifi_times
 from app.radiomaps.codec import encode_map
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.sites.assembly import LoadedSite, assemble_site
@@ -106,8 +106,9 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
     # WiFi only: a WiFi scan reports every access point heard at one time, the unit a
     # fingerprint is made of; BLE advertisements arrive one by one, each with its own time,
     # and taken as scans they would read as scans that missed every access point.
-    for s in samples.get("wifi", ()):
-        t.append(int(s["t"]))
+    wifi = samples.get("wifi", ())
+    for s, at in zip(wifi, wifi_times(wifi), strict=True):
+        t.append(at)
         ids.append(radio_id("wifi", s["id"]))
         rssi.append(float(s["rssi"]))
     return SurveyInput(
@@ -286,6 +287,7 @@ def _tuning_scores(validation: CrossValidation | None) -> dict[str, Any] | None:
         "emission_log_score_by_weight": {
             str(w): _r(v, 4) for w, v in validation.emission_score.items()
         },
+        "floor_log_score_by_weight": {str(w): _r(v, 4) for w, v in validation.floor_score.items()},
         "emission_scans": validation.emission_scans,
     }
 

@@ -7,7 +7,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from app.engine.samples import Batch, Fixes, Pressure, Ranges, RssiReadings, Sightings
-from app.ingest.arrays import imu_arrays
+from app.ingest.arrays import imu_arrays, wifi_times
 from app.sites.assembly import LoadedSite
 from app.sites.radio_ids import radio_id
 
@@ -21,12 +21,14 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
     tx: list[int] = []
     rssi: list[float] = []
     for kind in ("wifi", "ble"):
-        for s in samples.get(kind, ()):
+        items = samples.get(kind, ())
+        times = wifi_times(items) if kind == "wifi" else [s["t"] for s in items]
+        for s, t in zip(items, times, strict=True):
             row = site.transmitter_index.get(radio_id(kind, s["id"]))
             if row is None:
                 unknown += 1
                 continue
-            t_rssi.append(s["t"])
+            t_rssi.append(t)
             tx.append(row)
             rssi.append(s["rssi"])
     t_seen: list[int] = []

@@ -24,6 +24,15 @@ Sample = dict[str, Any]
 Message = dict[str, Any]
 
 
+CHOOSE_WITHIN_MS = 10_000
+"""Measurement time a new device's samples may wait for one that can place it."""
+
+
+def _places(batch: Batch) -> bool:
+    """Return whether a batch holds samples that say where a device is."""
+    return bool(len(batch.rssi) or len(batch.ranges) or len(batch.fixes) or len(batch.sightings))
+
+
 def _key(kind: str, sample: Sample) -> int:
     """Return the identity of a sample, to recognise the same sample delivered twice."""
     return hash((kind, repr(sample)))
@@ -94,8 +103,11 @@ class DeviceSession:
         """Release what is older than the reorder window (all of it on flush) as engine arrays.
 
         Returns the batch (None when nothing is released) and how many of its
-        samples name ids the site does not know. The first batch released
-        chooses the device's filter.
+        samples name ids the site does not know. The first batch that can
+        place the device (radio, ranges, fixes or sightings of the site's
+        infrastructure) chooses its filter; inertial samples before it wait
+        with it, up to ``CHOOSE_WITHIN_MS``, so a phone whose first upload
+        holds only IMU is not given a filter that cannot use its WiFi.
         """
         if not self.buffer:
             return None, 0
@@ -106,14 +118,18 @@ class DeviceSession:
             cut += 1
         if cut == 0:
             return None, 0
-        ready, self.buffer = self.buffer[:cut], self.buffer[cut:]
-        self.processed_t = ready[-1][0]
-        self.seen = {_key(k, s) for _, k, s in self.buffer}
+        ready = self.buffer[:cut]
         grouped: dict[str, list[Sample]] = {}
         for _, kind, sample in ready:
             grouped.setdefault(kind, []).append(sample)
-        self.kinds |= set(grouped)
         batch, unknown = to_batch(self.site, grouped)
+        waited = self.max_t - self.buffer[0][0]
+        if self.tracker is None and not (_places(batch) or waited >= CHOOSE_WITHIN_MS):
+            return None, 0
+        self.buffer = self.buffer[cut:]
+        self.processed_t = ready[-1][0]
+        self.seen = {_key(k, s) for _, k, s in self.buffer}
+        self.kinds |= set(grouped)
         self.unflushed = True
         if self.tracker is None:
             kind = choose_kind(self.site, batch, self.kinds)

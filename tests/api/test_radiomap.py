@@ -9,14 +9,17 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from app.datasets import data_dir
 from app.datasets.ilc import read_floor, read_walk, site_walks
+from app.evaluation.metrics import truth_at
 from app.importers.ilc import survey_body, walk_samples
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
+from app.replay import batches_by_time
 from app.sites.models import Site
 from tests.conftest import make_key
 
@@ -226,3 +229,67 @@ def test_engine_choice_is_stored_and_validated(
     # leaving the engine out keeps it
     r = client.put(f"/v1/sites/{site_id}", json={"name": "y"}, headers=admin)
     assert r.json()["engine"] == "pf" and r.json()["map_version"] == version + 1
+
+
+def _replay_walk(
+    client: TestClient, site_id: str, device: str, path: Path, wifi_times: str
+) -> list[dict[str, Any]]:
+    """Post a whole walk (WiFi timed as ``wifi_times`` says, BLE, IMU) in one-second batches,
+    each sample in the batch of the time the phone reported it; return the positions."""
+    walk = read_walk(path, FLOOR)
+    samples = walk_samples(walk, wifi_times=wifi_times)
+    out: list[dict[str, Any]] = []
+    chunks = batches_by_time(samples, batch_ms=1000, sent_at={"wifi": walk.wifi.t.tolist()})
+    for chunk in chunks:
+        body = {"device_id": device, "site_id": site_id, **chunk}
+        r = client.post("/v1/ingest?wait=true", json=body, headers=make_admin())
+        assert r.status_code == 200, r.text
+        out += r.json()["positions"]
+    return out
+
+
+@needs_site1
+def test_a_walk_gives_the_same_track_whether_wifi_carries_scan_or_reading_times(
+    client: TestClient, built_site: dict[str, Any], walks: list[Path]
+) -> None:
+    sid = built_site["site_id"]
+    # a surveyed walk: the four surveys map where it goes (the fifth walk goes elsewhere)
+    by_scan = _replay_walk(client, sid, f"{sid}-scan", walks[0], "scan")
+    by_reading = _replay_walk(client, sid, f"{sid}-reading", walks[0], "reading")
+    assert len(by_scan) > 10 and len(by_reading) > 10
+    assert {p["floor_id"] for p in by_scan + by_reading} == {FLOOR}
+    t = np.array([p["t"] for p in by_reading], dtype=float)
+    xy = np.array([[p["x"], p["y"]] for p in by_reading])
+    inside = [p for p in by_scan if t[0] <= p["t"] <= t[-1]]
+    # the reading-timed track at the scan-timed track's times: the same walk within metres
+    at = np.stack([np.interp([p["t"] for p in inside], t, xy[:, i]) for i in (0, 1)], axis=1)
+    gap = np.hypot(*(at - np.array([[p["x"], p["y"]] for p in inside])).T)
+    assert float(np.median(gap)) < 2.0 and float(gap.max()) < 5.0, np.percentile(gap, [50, 100])
+    # and both as close to the surveyed truth (the walk is one of the surveys)
+    walk = read_walk(walks[0], FLOOR)
+    errors = []
+    for track in (by_scan, by_reading):
+        truth, on = truth_at(walk.waypoints, np.array([p["t"] for p in track]))
+        est = np.array([[p["x"], p["y"]] for p in track])[on]
+        errors.append(float(np.mean(np.hypot(*(est - truth[on]).T))))
+    assert max(errors) < 3.0, errors
+
+
+@needs_site1
+def test_the_build_chooses_the_sites_constants_from_its_surveys(
+    built_site: dict[str, Any],
+) -> None:
+    summary = built_site["summary"]
+    tuning, scores = summary["tuning"], summary["tuning_scores"]
+    # every survey carries its IMU: the step length and heading offset are fitted on them
+    assert tuning["pdr_walks"] == N_SURVEYS
+    assert 0.2 < tuning["weinberg_k"] < 0.7 and -180 <= tuning["heading_offset_deg"] < 180
+    # the chosen k and weight are the best of the candidates, as the scores show
+    by_k = {int(k): v for k, v in scores["wknn_mean_error_m_by_k"].items()}
+    assert by_k[tuning["wknn_k"]] == min(by_k.values())
+    by_w = {float(w): v for w, v in scores["emission_log_score_by_weight"].items()}
+    assert by_w[tuning["emission_weight"]] == max(by_w.values())
+    by_f = {float(w): v for w, v in scores["floor_log_score_by_weight"].items()}
+    assert by_f[tuning["floor_weight"]] == max(by_f.values())
+    assert summary["accuracy"]["k"] == tuning["wknn_k"]
+    assert tuning["accuracy_floor_m"] == pytest.approx(summary["accuracy"]["p50_error_m"], 1e-3)

@@ -177,3 +177,6 @@ def test_cross_validation_scores_every_candidate_and_chooses_the_best() -> None:
     assert validation.emission_scans > 0
     best = validation.best_emission_weight()
     assert validation.emission_score[best] == max(validation.emission_score.values())
+    assert set(validation.floor_score) == {0.05, 0.3, 1.0}
+    # one floor: its scans are on it whatever the weight
+    assert all(v == pytest.approx(0.0) for v in validation.floor_score.values())

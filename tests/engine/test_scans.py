@@ -15,7 +15,7 @@ def _scan(t_end: int, tx: list[int], spread_ms: int, rng: np.random.Generator) -
 
 
 def test_readings_sharing_a_time_are_one_scan_whatever_their_number() -> None:
-    t = np.array([5000] * 30 + [5400] * 20 + [9000] * 3)
+    t = np.array([5000] * 30 + [5700] * 20 + [9000] * 3)
     tx = np.concatenate([np.arange(30), np.arange(20), np.arange(3)])
     ids = scan_ids(t, tx, PARAMS)
     assert ids.tolist() == [0] * 30 + [1] * 20 + [2] * 3

@@ -34,6 +34,11 @@ class HmmParams:
         The transition kernel is cut at this many standard deviations.
     emission_weight : float
         Exponent tempering the product of per-transmitter likelihoods.
+    floor_weight : float
+        Exponent tempering the same likelihoods when they weigh floors
+        against each other (a floor's evidence is its mean likelihood);
+        chosen apart from ``emission_weight`` since one scan can be sure of
+        its floor long before it is sure of its position.
     loglik_floor : float
         Floor (nats) of one heard transmitter's log-likelihood at a point.
     unmapped_dbm : float
@@ -84,6 +89,7 @@ class HmmParams:
     transition_threshold: float = 1e-6
     kernel_sigmas: float = 3.0
     emission_weight: float = 0.2
+    floor_weight: float = 0.2
     loglik_floor: float = -8.0
     unmapped_dbm: float = -95.0
     unmapped_var_db2: float = 36.0

@@ -245,8 +245,9 @@ class HmmTracker:
         p, model = self.params, self.model
         tx, rssi = unique_readings(self.scan_tx[index], self.scan_rssi[index])
         ll = [model.log_likelihood(f, tx, rssi) for f in range(len(model.maps))]
-        # per-floor marginal: ln mean_j L_j
-        marginal = np.array([logsumexp(v) - np.log(v.size) for v in ll])
+        # per-floor marginal under the floor's own tempering: ln mean_j L_j^(w_f / w)
+        rescale = p.floor_weight / p.emission_weight
+        marginal = np.array([logsumexp(rescale * v) - np.log(v.size) for v in ll])
         n = marginal.size
         stay = np.exp(self.floor_logp)
         eps = p.floor_switch_prob
