@@ -219,6 +219,12 @@ class Settings(BaseSettings):
         le=100,
         description="Folds of the held-out accuracy estimate of a build (whole walks held out).",
     )
+    radiomap_tuning: bool = Field(
+        default=True,
+        description="A build chooses the site's constants (PDR, k-NN, emission and floor "
+        "weights, heading noise) from its surveys; off, it keeps the engines' defaults and "
+        "learns only the accuracy floor.",
+    )
     radiomap_progress_step: float = Field(
         default=0.05,
         gt=0,

@@ -134,7 +134,10 @@ class Estimate:
 
     ``floor`` indexes ``SiteModel.floors``; ``heading`` is degrees clockwise
     from +y in [0, 360) or NaN when unknown; ``accuracy`` is the radius (m)
-    holding the true position with 68% probability.
+    holding the true position with 68% probability. ``odometry`` is where the
+    device's own steps alone have taken it (m, site frame, origin where its
+    filter started), for a smoother to weigh positions against its motion;
+    None from filters that count no steps.
     """
 
     t: int
@@ -146,3 +149,4 @@ class Estimate:
     accuracy: float
     speed: float
     method: str
+    odometry: tuple[float, float] | None = None

@@ -70,6 +70,7 @@ class RadioMapBuilds:
                 site_id=site_id,
                 raster_cell=self.settings.raster_cell,
                 folds=self.settings.radiomap_folds,
+                tune=self.settings.radiomap_tuning,
                 progress=progress,
             )
         # this node's ingest sees the new map version at once (other nodes within the cache TTL)

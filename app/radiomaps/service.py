@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -36,7 +36,12 @@ from app.engine.radiomap import (
     walkable_cells,
 )
 from app.engine.samples import ImuSamples, RssiReadings
-from app.engine.tuning import EMISSION_WEIGHT_CANDIDATES, WKNN_K_CANDIDATES, tune_site
+from app.engine.tuning import (
+    EMISSION_WEIGHT_CANDIDATES,
+    WKNN_K_CANDIDATES,
+    SiteTuning,
+    tune_site,
+)
 from app.engine.wknn import WknnParams
 from app.ingest.arrays import imu_arrays, wifi_times
 from app.radiomaps.codec import encode_map
@@ -164,11 +169,13 @@ def _r(value: float, digits: int = 3) -> float | None:
 
 
 def compute_build(
-    inputs: BuildInputs, *, folds: int, progress: Progress | None = None
+    inputs: BuildInputs, *, folds: int, tune: bool = True, progress: Progress | None = None
 ) -> BuildResult:
-    """Build every surveyed floor's radio map, calibrate every heard transmitter, and estimate
-    the maps' accuracy on held-out walks (``folds`` groups of whole walks held out in turn).
-    Raises Conflict when no scan can be located."""
+    """Build every surveyed floor's radio map, calibrate every heard transmitter, estimate
+    the maps' accuracy on held-out walks (``folds`` groups of whole walks held out in turn)
+    and, with ``tune``, choose the site's constants on the same folds (otherwise the
+    engines' defaults are kept, with the held-out accuracy floor). Raises Conflict when no
+    scan can be located."""
     report = progress or (lambda _: None)
     site = inputs.site
     if not inputs.surveys:
@@ -221,8 +228,15 @@ def compute_build(
         weights=EMISSION_WEIGHT_CANDIDATES,
         progress=lambda x: report(0.65 + 0.25 * x),
     )
-    walks = _measured_walks(inputs)
-    tuning = tune_site(walks, validation)
+    tuning = tune_site(_measured_walks(inputs), validation)
+    if not tune:
+        defaults = SiteTuning.defaults()
+        floor = (
+            float(np.median(validation.by_k[defaults.wknn_k].error_m))
+            if validation is not None
+            else defaults.accuracy_floor_m
+        )
+        tuning = replace(defaults, accuracy_floor_m=floor)
     report(0.95)
     accuracy: dict[str, Any] | None = None
     if validation is not None:
@@ -358,6 +372,7 @@ def build_site(
     site_id: str,
     raster_cell: float,
     folds: int,
+    tune: bool = True,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Run a whole build (read, compute, store) and return the summary with its duration.
@@ -370,7 +385,7 @@ def build_site(
         if site is None:
             raise NotFound(f"site '{site_id}' not found")
         inputs = load_inputs(db=db, site=site, raster_cell=raster_cell)
-    result = compute_build(inputs, folds=folds, progress=progress)
+    result = compute_build(inputs, folds=folds, tune=tune, progress=progress)
     with session_scope(sessions) as db:
         site = db.get(Site, site_id)
         if site is None:

@@ -54,6 +54,7 @@ class HmmTracker:
             self.floor_logp = np.full(n_maps, -np.log(n_maps))
             self.prob = np.zeros(0)
             self.d = np.zeros(2)
+            self.odometry = np.zeros(2)
             self.cov = np.zeros((2, 2))
             self.t_scan = -1
             self.t_emit = -1
@@ -81,6 +82,7 @@ class HmmTracker:
             "prob_index": nz.astype(np.int32),
             "prob_value": self.prob[nz].copy(),
             "d": self.d.copy(),
+            "odometry": self.odometry.copy(),
             "cov": self.cov.copy(),
             "t_scan": self.t_scan,
             "t_emit": self.t_emit,
@@ -109,6 +111,7 @@ class HmmTracker:
         self.prob = np.zeros(int(state["n_points"]))
         self.prob[np.asarray(state["prob_index"], dtype=np.int64)] = state["prob_value"]
         self.d = np.asarray(state["d"], dtype=float)
+        self.odometry = np.asarray(state.get("odometry", np.zeros(2)), dtype=float)
         self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
         self.t_scan = int(state["t_scan"])
         self.t_emit = int(state["t_emit"])
@@ -230,6 +233,7 @@ class HmmTracker:
         heading = self.steps.heading[i : i + 1]
         d, cov = step_displacement(length, heading, p.step_length_std_m, p.heading_std_deg)
         self.d = self.d + d
+        self.odometry = self.odometry + d
         self.cov = self.cov + cov
         t = int(self.steps.t[i])
         if self.t_step >= 0 and t > self.t_step:
@@ -331,4 +335,5 @@ class HmmTracker:
             accuracy=accuracy,
             speed=self.speed,
             method=self.method,
+            odometry=(float(self.odometry[0]), float(self.odometry[1])),
         )

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 from app.datasets.ilc import Walk
 from app.engine.samples import Estimate
+from app.engine.smoothing import SmootherParams, fixed_lag, smooth_track
 from app.evaluation.ilc.learn import Learned
 from app.evaluation.ilc.methods import PARTICLE_FILTERS, make_runner, replay_pf_batched
 from app.evaluation.ilc.recordings import SiteRecordings
@@ -28,6 +29,35 @@ class Evaluation:
     rows: list[Row]
     kept: dict[str, dict[str, list[Estimate]]] = field(default_factory=dict)
     run_s: dict[str, float] = field(default_factory=dict)
+
+
+SMOOTHERS: dict[str, Callable[[Sequence[Estimate], SmootherParams], list[Estimate]]] = {
+    "fixed-lag": fixed_lag,
+    "full smoothing": smooth_track,
+}
+"""The smoothed rows added after a method whose estimates carry odometry."""
+
+
+def smoothed_rows(
+    site: SiteRecordings,
+    walks: Sequence[Walk],
+    name: str,
+    estimates: Sequence[Sequence[Estimate]],
+    cpu_s: float,
+    updates: int,
+) -> list[Row]:
+    """Return the rows of a method's estimates refined by each smoother (its CPU added)."""
+    rows = []
+    for label, smoother in SMOOTHERS.items():
+        started = time.process_time()
+        refined = [smoother(est, SmootherParams()) for est in estimates]
+        extra = time.process_time() - started
+        scores = [
+            score_walk(walk.waypoints, site.floor_index(walk), est)
+            for walk, est in zip(walks, refined, strict=True)
+        ]
+        rows.append(summarise(f"{name} + {label}", scores, cpu_s + extra, updates))
+    return rows
 
 
 def evaluate(
@@ -70,4 +100,6 @@ def evaluate(
                 kept[walk.walk_id][name] = est
         rows.append(summarise(name, scores, cpu, updates))
         run_s[name] = time.perf_counter() - started
+        if any(e.odometry is not None for est in estimates for e in est):
+            rows += smoothed_rows(site, walks, name, estimates, cpu, updates)
     return Evaluation(rows, kept, run_s=run_s)

@@ -66,11 +66,11 @@ def _free_port() -> int:
 class LocalServer:
     """A ``locus serve`` subprocess on a free port with its own database, stopped on exit."""
 
-    def __init__(self, home: Path, workers: int = 1) -> None:
+    def __init__(self, home: Path, workers: int = 1, env: dict[str, str] | None = None) -> None:
         self.port = _free_port()
         self.key = secrets.token_urlsafe(24)
         self.url = f"http://127.0.0.1:{self.port}"
-        env = os.environ | {"LOCUS_ADMIN_KEY": self.key}
+        env = os.environ | {"LOCUS_ADMIN_KEY": self.key} | (env or {})
         command = [sys.executable, "-m", "app.cli", "serve", "--port", str(self.port)]
         command += ["--home", str(home), "--workers", str(workers)]
         self.log = (home / "server.log").open("w")
@@ -145,13 +145,17 @@ def evaluate_through_server(
     test: Sequence[Walk],
     *,
     wifi_times: str = "scan",
+    tuning: bool = True,
     status: Callable[[str], None] = lambda _: None,
     progress: Callable[[int], None] = lambda _: None,
 ) -> ServerRun:
     """Start a server, survey and build it from ``train``, replay ``test`` and score it."""
     if wifi_times not in WIFI_TIMES:
         raise ValueError(f"wifi_times must be one of {WIFI_TIMES}")
-    with tempfile.TemporaryDirectory(prefix="locus-eval-") as home, LocalServer(Path(home)) as srv:
+    with (
+        tempfile.TemporaryDirectory(prefix="locus-eval-") as home,
+        LocalServer(Path(home), env={"LOCUS_RADIOMAP_TUNING": str(tuning).lower()}) as srv,
+    ):
         headers = {"Authorization": f"Bearer {srv.key}"}
         with httpx.Client(base_url=srv.url, headers=headers, timeout=1800) as http:
             status(f"uploading {len(floors)} floors and {len(train)} surveys")
@@ -195,6 +199,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="survey only this share of the training walks (by walk id hash)",
     )
     parser.add_argument("--wifi-times", choices=WIFI_TIMES, default="scan")
+    parser.add_argument(
+        "--no-tuning",
+        action="store_true",
+        help="the build keeps the engines' hand-set defaults instead of choosing constants",
+    )
     parser.add_argument("--save", type=Path, help="write the positions and summary as JSON")
     return parser.parse_args(argv)
 
@@ -234,13 +243,15 @@ def main(argv: Sequence[str] | None = None) -> None:
             train_walks,
             held,
             wifi_times=args.wifi_times,
+            tuning=not args.no_tuning,
             status=lambda s: status.update(s),
             progress=lambda i: bar.update(task, completed=i),
         )
     console.print(f"build chose: {run.build.get('tuning')}")
     console.print(f"candidates: {run.build.get('tuning_scores')}")
     console.print(f"build accuracy: {run.build.get('accuracy')}")
-    row = summarise(f"server ({args.wifi_times})", run.scores, 0.0, 0)
+    label = f"server ({args.wifi_times}{', defaults' if args.no_tuning else ''})"
+    row = summarise(label, run.scores, 0.0, 0)
     table = Table(title=f"ILC site1 through locus serve, {len(held)} held-out walks")
     for i, col in enumerate(COLUMNS):
         table.add_column(col, justify="left" if i == 0 else "right")

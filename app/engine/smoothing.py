@@ -1,0 +1,165 @@
+"""Positions refined by what came after them: a least-squares smoother over fixes and steps.
+
+A filter's position at time t knows only the measurements up to t. Weighed
+against the device's own motion, the positions that follow can correct it:
+the track p minimising
+
+    Σ_i |p_i - z_i|² / σ_i²  +  Σ_i |p_{i+1} - p_i - Δo_i|² / m_i²
+
+where z_i are the filter's positions with their standard deviation σ_i
+(from the 68% radius), Δo_i the displacement the steps measured between
+them (odometry) and m_i = a + b Δt_i its error, growing with the time
+between the two (a walker's step length and heading drift). Without
+odometry between two positions (no steps counted) the walker may have moved
+anywhere a walking speed allows. The normal equations are tridiagonal, one
+banded solve per coordinate. Following the strongest smartphone pipelines on
+this data format (PHONES.md: fix weight ≈ 1/8², motion weight ≈
+1/(0.3 + 0.3 Δt)²).
+
+``smooth_track`` solves a whole stored track (the full backward pass);
+``fixed_lag`` gives, for each position, what a smoother ``lag_ms`` behind it
+says: the live stream's refined re-emission.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.linalg import solveh_banded
+
+from app.engine.gaussian import R68_SIGMAS_2D
+from app.engine.samples import Estimate
+
+
+@dataclass(frozen=True)
+class SmootherParams:
+    """Tunable constants of the smoother.
+
+    Attributes
+    ----------
+    lag_ms : int
+        A fixed-lag position is solved with the positions up to this much
+        later (the refined stream runs this far behind measurement time).
+    window_ms : int
+        A fixed-lag solve uses the positions of this much time before the
+        one it refines (older ones no longer move it).
+    fix_floor_m : float
+        No filter position is trusted to better than this (m, one σ).
+    motion_std_m : float
+        a: error (m) of any odometry displacement, however short.
+    motion_std_per_s : float
+        b: error (m) added per second between two positions.
+    free_speed_mps : float
+        Without odometry between two positions, the walker moved at most
+        about this fast (m/s) in any direction.
+    """
+
+    lag_ms: int = 4000
+    window_ms: int = 30_000
+    fix_floor_m: float = 1.0
+    motion_std_m: float = 0.3
+    motion_std_per_s: float = 0.3
+    free_speed_mps: float = 1.5
+
+
+def smooth_positions(
+    t: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+    odometry: np.ndarray,
+    params: SmootherParams,
+) -> np.ndarray:
+    """Return the least-squares track of one floor's positions, shape (n, 2).
+
+    Parameters
+    ----------
+    t : ndarray of int, shape (n,)
+        Times (ms), ascending.
+    xy : ndarray, shape (n, 2)
+        Filter positions (m).
+    sigma : ndarray, shape (n,)
+        Their standard deviations (m).
+    odometry : ndarray, shape (n, 2)
+        Dead-reckoned position at each time (m, any origin); NaN where unknown.
+    params : SmootherParams
+        Motion and fix errors.
+    """
+    n = t.size
+    if n < 2:
+        return np.asarray(xy, dtype=float).copy()
+    dt = np.diff(t) / 1000.0
+    step = np.diff(odometry, axis=0)
+    known = np.all(np.isfinite(step), axis=1)
+    # m_i = a + b Δt with odometry, v Δt (+ a) without
+    m = np.where(
+        known,
+        params.motion_std_m + params.motion_std_per_s * dt,
+        params.motion_std_m + params.free_speed_mps * dt,
+    )
+    step = np.where(known[:, None], step, 0.0)
+    w_fix = 1.0 / np.maximum(sigma, params.fix_floor_m) ** 2
+    w_mot = 1.0 / m**2
+    # normal equations (W_fix + Dᵀ W_mot D) p = W_fix z + Dᵀ W_mot Δo, D the difference operator
+    diag = w_fix.copy()
+    diag[:-1] += w_mot
+    diag[1:] += w_mot
+    upper = np.concatenate([[0.0], -w_mot])
+    rhs = w_fix[:, None] * xy
+    rhs[:-1] -= w_mot[:, None] * step
+    rhs[1:] += w_mot[:, None] * step
+    return solveh_banded(np.vstack([upper, diag]), rhs)
+
+
+def _arrays(
+    estimates: Sequence[Estimate],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    t = np.array([e.t for e in estimates], dtype=np.int64)
+    xy = np.array([[e.x, e.y] for e in estimates], dtype=float).reshape(-1, 2)
+    sigma = np.array([e.accuracy for e in estimates], dtype=float) / R68_SIGMAS_2D
+    sigma = np.where(np.isfinite(sigma), sigma, np.inf)
+    odo = np.array(
+        [e.odometry if e.odometry is not None else (np.nan, np.nan) for e in estimates],
+        dtype=float,
+    ).reshape(-1, 2)
+    floor = np.array([e.floor for e in estimates], dtype=np.int64)
+    return t, xy, sigma, odo, floor
+
+
+def _runs(floor: np.ndarray) -> list[tuple[int, int]]:
+    """Return [start, stop) of each run of equal floors."""
+    cuts = np.flatnonzero(np.diff(floor)) + 1
+    bounds = np.concatenate([[0], cuts, [floor.size]])
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True))
+
+
+def smooth_track(estimates: Sequence[Estimate], params: SmootherParams) -> list[Estimate]:
+    """Return a whole track smoothed, floor run by floor run (the full backward pass)."""
+    if not estimates:
+        return []
+    t, xy, sigma, odo, floor = _arrays(estimates)
+    out = xy.copy()
+    for lo, hi in _runs(floor):
+        out[lo:hi] = smooth_positions(t[lo:hi], xy[lo:hi], sigma[lo:hi], odo[lo:hi], params)
+    return [replace(e, x=float(p[0]), y=float(p[1])) for e, p in zip(estimates, out, strict=True)]
+
+
+def fixed_lag(estimates: Sequence[Estimate], params: SmootherParams) -> list[Estimate]:
+    """Return each position as a smoother ``lag_ms`` behind it refines it.
+
+    Position i is solved with the positions of its floor run from
+    ``window_ms`` before it to ``lag_ms`` after it: exactly what a live
+    smoother holding that lag knows when it re-emits position i.
+    """
+    if not estimates:
+        return []
+    t, xy, sigma, odo, floor = _arrays(estimates)
+    out = xy.copy()
+    for lo, hi in _runs(floor):
+        for i in range(lo, hi):
+            a = lo + int(np.searchsorted(t[lo:hi], t[i] - params.window_ms, side="left"))
+            b = lo + int(np.searchsorted(t[lo:hi], t[i] + params.lag_ms, side="right"))
+            solved = smooth_positions(t[a:b], xy[a:b], sigma[a:b], odo[a:b], params)
+            out[i] = solved[i - a]
+    return [replace(e, x=float(p[0]), y=float(p[1])) for e, p in zip(estimates, out, strict=True)]

@@ -1,0 +1,88 @@
+"""The smoother: positions weighed against the steps that join them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.engine.samples import Estimate
+from app.engine.smoothing import SmootherParams, fixed_lag, smooth_positions, smooth_track
+
+PARAMS = SmootherParams()
+
+
+def _walk(n: int = 120, seed: int = 5, noise_m: float = 3.0) -> tuple[list[Estimate], np.ndarray]:
+    """A walk along an L at 1.2 m/s, a fix every 0.5 s with noise, odometry with a 10% scale
+    error; returns the estimates and the true positions."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 500
+    s = 1.2 * t / 1000.0
+    truth = np.where(s[:, None] < 30.0, np.stack([s, 0 * s], 1), np.stack([30 + 0 * s, s - 30], 1))
+    odometry = 1.1 * truth + np.array([7.0, -3.0])
+    fixes = truth + rng.normal(0.0, noise_m, truth.shape)
+    estimates = [
+        Estimate(
+            t=int(t[i]),
+            x=float(fixes[i, 0]),
+            y=float(fixes[i, 1]),
+            z=0.0,
+            floor=0,
+            heading=float("nan"),
+            accuracy=noise_m * 1.515,
+            speed=1.2,
+            method="hmm",
+            odometry=(float(odometry[i, 0]), float(odometry[i, 1])),
+        )
+        for i in range(n)
+    ]
+    return estimates, truth
+
+
+def _error(estimates: list[Estimate], truth: np.ndarray) -> float:
+    xy = np.array([[e.x, e.y] for e in estimates])
+    return float(np.mean(np.hypot(*(xy - truth).T)))
+
+
+def test_smoothing_a_noisy_track_with_its_steps_brings_it_closer_to_the_truth() -> None:
+    estimates, truth = _walk()
+    raw = _error(estimates, truth)
+    lagged = _error(fixed_lag(estimates, PARAMS), truth)
+    full = _error(smooth_track(estimates, PARAMS), truth)
+    # steps tie neighbouring fixes together: the noise averages out
+    assert full < 0.5 * raw
+    assert lagged < 0.6 * raw
+    # the full pass knows at least as much as the lagged one
+    assert full <= lagged + 0.1
+
+
+def test_without_steps_the_smoother_only_bounds_speed() -> None:
+    estimates, truth = _walk(noise_m=2.0)
+    blind = [
+        Estimate(**{**vars(e), "odometry": None})  # type: ignore[arg-type]
+        for e in estimates
+    ]
+    # still better than the raw fixes (walking speed is bounded), but less than with steps
+    assert _error(smooth_track(blind, PARAMS), truth) < _error(estimates, truth)
+    assert _error(smooth_track(estimates, PARAMS), truth) < _error(
+        smooth_track(blind, PARAMS), truth
+    )
+
+
+def test_exact_fixes_are_kept_and_a_lone_fix_is_unchanged() -> None:
+    t = np.array([0, 1000, 2000])
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    odo = xy.copy()
+    out = smooth_positions(t, xy, np.full(3, 0.5), odo, PARAMS)
+    assert np.allclose(out, xy)
+    one = smooth_positions(t[:1], xy[:1], np.ones(1), odo[:1], PARAMS)
+    assert np.array_equal(one, xy[:1])
+
+
+def test_floor_changes_split_the_track() -> None:
+    estimates, _ = _walk(n=20)
+    moved = [
+        Estimate(**{**vars(e), "floor": 0 if i < 10 else 1})  # type: ignore[arg-type]
+        for i, e in enumerate(estimates)
+    ]
+    alone = smooth_track(moved[10:], PARAMS)
+    together = smooth_track(moved, PARAMS)[10:]
+    assert [(e.x, e.y) for e in alone] == [(e.x, e.y) for e in together]

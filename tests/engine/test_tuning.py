@@ -1,0 +1,58 @@
+"""A site's constants chosen from its surveys, stored and read back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.engine.hmm.params import HmmParams
+from app.engine.pdr_fit import WalkPdr
+from app.engine.tuning import HEADING_STD_RANGE_DEG, SiteTuning, heading_spread, tune_site
+
+
+def _walk(errors: list[float], distance: float = 40.0, stride_sum: float = 100.0) -> WalkPdr:
+    return WalkPdr(
+        walk_id="w",
+        floor="F1",
+        distance=distance,
+        stride_sum=stride_sum,
+        n_steps=60,
+        duration_s=40.0,
+        segment_error=np.array(errors, dtype=float),
+    )
+
+
+def test_a_rotated_building_is_learned_from_its_surveys() -> None:
+    # every survey segment's steps point 30° clockwise of the walked direction
+    walks = [_walk([29.0, 31.0, 30.5, 29.5]), _walk([30.0, 28.0, 32.0])]
+    tuning = tune_site(walks, None)
+    assert tuning.heading_offset_deg == pytest.approx(-30.0, abs=0.5)
+    # K fits the walked distance: 80 m over 200 swing units
+    assert tuning.weinberg_k == pytest.approx(0.4)
+    assert tuning.pdr_walks == 2
+    # the spread once the rotation is removed is small, bounded below
+    assert tuning.heading_std_deg == HEADING_STD_RANGE_DEG[0]
+    assert tuning.pdr().heading_offset_deg == tuning.heading_offset_deg
+
+
+def test_heading_spread_is_robust_to_one_wild_segment() -> None:
+    errors = [10.0, -10.0, 12.0, -12.0, 8.0, -8.0, 170.0]
+    spread = heading_spread([_walk(errors)], 0.0)
+    # σ ≈ 1.4826 × 16 (the MAD), where a standard deviation would be over 60°
+    assert spread is not None and 20.0 < spread < 30.0
+    assert heading_spread([_walk([1.0])], 0.0) is None
+
+
+def test_without_surveys_the_defaults_stand() -> None:
+    assert tune_site([], None) == SiteTuning.defaults()
+    hmm = SiteTuning.defaults().hmm()
+    assert hmm == HmmParams()
+
+
+def test_stored_tuning_reads_back_and_missing_values_take_defaults() -> None:
+    tuning = SiteTuning.defaults()
+    tuned = SiteTuning.from_dict(tuning.as_dict() | {"wknn_k": 12, "emission_weight": 0.05})
+    assert tuned.wknn_k == 12 and tuned.wknn().k == 12 and tuned.hmm().k == 12
+    assert tuned.hmm().emission_weight == 0.05
+    # a build stored before some constant was chosen keeps that constant's default
+    assert SiteTuning.from_dict({"wknn_k": 3, "unknown": 1}).floor_weight == tuning.floor_weight
