@@ -137,7 +137,8 @@ class Estimate:
     holding the true position with 68% probability. ``odometry`` is where the
     device's own steps alone have taken it (m, site frame, origin where its
     filter started), for a smoother to weigh positions against its motion;
-    None from filters that count no steps.
+    None from filters that count no steps. ``smoothed`` marks a position
+    re-emitted refined by the positions after it.
     """
 
     t: int
@@ -150,3 +151,4 @@ class Estimate:
     speed: float
     method: str
     odometry: tuple[float, float] | None = None
+    smoothed: bool = False

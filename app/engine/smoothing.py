@@ -23,8 +23,10 @@ says: the live stream's refined re-emission.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 from scipy.linalg import solveh_banded
@@ -163,3 +165,65 @@ def fixed_lag(estimates: Sequence[Estimate], params: SmootherParams) -> list[Est
             solved = smooth_positions(t[a:b], xy[a:b], sigma[a:b], odo[a:b], params)
             out[i] = solved[i - a]
     return [replace(e, x=float(p[0]), y=float(p[1])) for e, p in zip(estimates, out, strict=True)]
+
+
+class FixedLagSmoother:
+    """A device's live smoother: each position re-emitted refined once ``lag_ms`` has passed.
+
+    Holds the positions of the last ``window_ms + lag_ms`` of measurement
+    time. ``push`` takes the filter's new positions and returns the refined
+    ones that are now due (``smoothed`` set), each solved exactly as
+    ``fixed_lag`` solves it over a whole track.
+    """
+
+    def __init__(self, params: SmootherParams, state: dict[str, Any] | None = None) -> None:
+        self.params = params
+        self.held: list[Estimate] = []
+        self.done_t = -1
+        if state is not None:
+            self.held = [_estimate(e) for e in json.loads(str(state["held"]))]
+            self.done_t = int(state["done_t"])
+
+    def push(self, estimates: Sequence[Estimate], *, now_t: int | None = None) -> list[Estimate]:
+        """Add the filter's new positions; return the refined positions now due, in time order.
+
+        A position is due once the filter has reported positions ``lag_ms``
+        after it (or measurement time ``now_t`` has passed that far).
+        """
+        p = self.params
+        self.held += [e for e in estimates if e.t > (self.held[-1].t if self.held else -1)]
+        if not self.held:
+            return []
+        horizon = max(self.held[-1].t, now_t if now_t is not None else -1)
+        due = [e for e in self.held if self.done_t < e.t <= horizon - p.lag_ms]
+        out = []
+        for e in due:
+            around = [
+                h
+                for h in self.held
+                if e.t - p.window_ms <= h.t <= e.t + p.lag_ms and h.floor == e.floor
+            ]
+            refined = fixed_lag(around, p)
+            out.append(replace(refined[around.index(e)], smoothed=True))
+        if due:
+            self.done_t = due[-1].t
+        keep_from = self.done_t - p.window_ms
+        self.held = [h for h in self.held if h.t >= keep_from]
+        return out
+
+    def flush(self) -> list[Estimate]:
+        """Return every held position not yet refined, refined with what is known (stream end)."""
+        if not self.held:
+            return []
+        last = self.held[-1].t
+        return self.push([], now_t=last + self.params.lag_ms)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return the held positions and the last refined time as plain values."""
+        return {"held": json.dumps([asdict(e) for e in self.held]), "done_t": self.done_t}
+
+
+def _estimate(fields: dict[str, Any]) -> Estimate:
+    """Return an estimate from its ``asdict`` fields read back from JSON."""
+    odometry = fields.get("odometry")
+    return Estimate(**(fields | {"odometry": None if odometry is None else tuple(odometry)}))

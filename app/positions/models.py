@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
-from sqlalchemy import BigInteger, Float, Index, Integer, String
+from sqlalchemy import BigInteger, Boolean, Float, Index, Integer, String, false
 from sqlalchemy.orm import Mapped, mapped_column
 
 from app.core.db import Base
 
 
 class PositionRecord(Base):
-    """One emitted position of a device at measurement time ``t`` (ms)."""
+    """One emitted position of a device at measurement time ``t`` (ms).
+
+    ``smoothed`` marks a position re-emitted refined by the positions after
+    it; the live one of the same time stays beside it.
+    """
 
     __tablename__ = "positions"
     __table_args__ = (Index("ix_positions_device_t", "device_id", "t"),)
@@ -27,3 +31,4 @@ class PositionRecord(Base):
     speed: Mapped[float | None] = mapped_column(Float)
     method: Mapped[str] = mapped_column(String(16))
     computed_at: Mapped[int] = mapped_column(BigInteger)
+    smoothed: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())

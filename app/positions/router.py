@@ -31,6 +31,7 @@ def _message(row: PositionRecord) -> Position:
         speed=row.speed,
         method=row.method,
         computed_at=row.computed_at,
+        smoothed=row.smoothed,
     )
 
 

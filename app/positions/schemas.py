@@ -21,6 +21,7 @@ class Position(BaseModel):
     speed: float | None
     method: str
     computed_at: int
+    smoothed: bool = False
 
 
 class PositionPage(BaseModel):

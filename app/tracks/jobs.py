@@ -112,6 +112,7 @@ class TrackFitter:
                 "speed": None,
                 "method": "trackfit",
                 "computed_at": now_ms(),
+                "smoothed": False,
             }
             db.execute(insert(PositionRecord), [{k: v for k, v in position.items() if k != "type"}])
             return position

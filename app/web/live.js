@@ -109,7 +109,8 @@ export class LiveView {
   }
 
   #receive(message) {
-    if (message.type === "position") this.#position(message);
+    // the live marker follows live positions; refined re-emissions belong to history
+    if (message.type === "position" && !message.smoothed) this.#position(message);
     else if (message.type === "zone") this.#zoneEvent(message);
   }
 

@@ -64,6 +64,7 @@ class DeviceSession:
         self.snapshot_t = -1
         self.last_seen = now
         self.emitted_t = -1
+        self.smoothed_t = -1
         self.unflushed = False
         self.kinds: set[str] = set()
 
@@ -147,12 +148,18 @@ class DeviceSession:
         """Return the position messages and zone events of the estimates not yet emitted.
 
         Estimates at or before the last emitted time are dropped: a filter
-        rebuilt from an older snapshot repeats what was already stored.
+        rebuilt from an older snapshot repeats what was already stored. Live
+        and refined positions are counted apart (a refined one is older than
+        the live ones emitted with it); zones follow the live ones.
         """
-        fresh = [e for e in estimates if e.t > self.emitted_t]
+        fresh = [e for e in estimates if not e.smoothed and e.t > self.emitted_t]
+        refined = [e for e in estimates if e.smoothed and e.t > self.smoothed_t]
         if fresh:
             self.emitted_t = fresh[-1].t
-        positions = [self._position(e, now) for e in fresh]
+        if refined:
+            self.smoothed_t = refined[-1].t
+        both = sorted(fresh + refined, key=lambda e: (e.t, e.smoothed))
+        positions = [self._position(e, now) for e in both]
         events = [ev for e in fresh for ev in self._zone_events(e)]
         return positions, events
 
@@ -198,6 +205,7 @@ class DeviceSession:
             "speed": None if math.isnan(estimate.speed) else round(estimate.speed, 3),
             "method": estimate.method,
             "computed_at": now,
+            "smoothed": estimate.smoothed,
         }
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -211,6 +219,7 @@ class DeviceSession:
         state: dict[str, Any] = {
             "processed_t": self.processed_t,
             "emitted_t": self.emitted_t,
+            "smoothed_t": self.smoothed_t,
             "unflushed": self.unflushed,
             "zones": sorted(self.zones),
             "kinds": sorted(self.kinds),
@@ -230,6 +239,7 @@ class DeviceSession:
             )
         self.processed_t = self.snapshot_t = int(state["processed_t"])
         self.emitted_t = int(state.get("emitted_t", -1))
+        self.smoothed_t = int(state.get("smoothed_t", -1))
         self.unflushed = bool(state.get("unflushed", False))
         self.zones = frozenset(str(z) for z in state.get("zones", ()))
         self.kinds = {str(k) for k in state.get("kinds", ())}

@@ -24,6 +24,7 @@ from app.engine.particle.floor_model import build_floor_models
 from app.engine.pdr import PdrParams
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate
+from app.engine.smoothing import FixedLagSmoother, SmootherParams
 from app.engine.tracker import Tracker
 from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
 from app.sites.assembly import LoadedSite
@@ -47,6 +48,7 @@ class SiteEngines:
     _hmm: EmissionModel | None = field(default=None, repr=False)
     hmm_params: HmmParams = field(default_factory=HmmParams)
     pdr_params: PdrParams = field(default_factory=PdrParams)
+    smoother_params: SmootherParams = field(default_factory=SmootherParams)
 
     @classmethod
     def for_site(cls, site: LoadedSite) -> SiteEngines:
@@ -154,25 +156,39 @@ OwnFilter = UwbTracker | LocatorTracker | HmmTracker | WeightedCentroid
 
 
 class FilterDevice:
-    """A device whose filter is its own object (UWB, locator, HMM, centroid)."""
+    """A device whose filter is its own object (UWB, locator, HMM, centroid).
+
+    With a ``smoother``, every position is re-emitted refined once the
+    smoother's lag has passed (marked ``smoothed``), after the live ones.
+    """
 
     shared_engine: None = None
 
-    def __init__(self, kind: str, tracker: OwnFilter) -> None:
+    def __init__(
+        self, kind: str, tracker: OwnFilter, smoother: FixedLagSmoother | None = None
+    ) -> None:
         self.kind = kind
         self.tracker = tracker
+        self.smoother = smoother
 
     def process(self, batch: Batch) -> list[Estimate]:
         """Consume one time-ordered batch and return the estimates it produced."""
-        return self.tracker.process(batch)
+        live = self.tracker.process(batch)
+        return live if self.smoother is None else live + self.smoother.push(live)
 
     def flush(self) -> list[Estimate]:
-        """Return no estimates: these filters keep what they hold for the device's next batch."""
-        return []
+        """Return the refined positions still held back: the device went quiet.
+
+        The filters keep what they hold for the device's next batch.
+        """
+        return [] if self.smoother is None else self.smoother.flush()
 
     def snapshot(self) -> dict[str, Any]:
-        """Return the filter's state."""
-        return self.tracker.snapshot()
+        """Return the filter's state (and the smoother's, under ``smoother``)."""
+        state = self.tracker.snapshot()
+        if self.smoother is not None:
+            state["smoother"] = self.smoother.snapshot()
+        return state
 
     def close(self) -> None:
         """Nothing to free: the filter holds nothing outside itself."""
@@ -224,8 +240,11 @@ def make_tracker(
         if state is not None and not _hmm_state_fits(model, state):
             # the radio map was rebuilt: the old distribution has no meaning on the new points
             state = None
+        if state is not None:
+            state = dict(state)
+        saved = None if state is None else state.pop("smoother", None)
         tracker = HmmTracker(model, engines.hmm_params, engines.pdr_params, state=state)
-        return FilterDevice(HMM, tracker)
+        return FilterDevice(HMM, tracker, FixedLagSmoother(engines.smoother_params, saved))
     if kind == UWB:
         return FilterDevice(UWB, UwbTracker(engines.site.model, UwbTrackerParams(), state))
     if kind == LOCATOR:

@@ -248,14 +248,18 @@ def _replay_walk(
     return out
 
 
+def _live(positions: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [p for p in positions if not p["smoothed"]]
+
+
 @needs_site1
 def test_a_walk_gives_the_same_track_whether_wifi_carries_scan_or_reading_times(
     client: TestClient, built_site: dict[str, Any], walks: list[Path]
 ) -> None:
     sid = built_site["site_id"]
     # a surveyed walk: the four surveys map where it goes (the fifth walk goes elsewhere)
-    by_scan = _replay_walk(client, sid, f"{sid}-scan", walks[0], "scan")
-    by_reading = _replay_walk(client, sid, f"{sid}-reading", walks[0], "reading")
+    by_scan = _live(_replay_walk(client, sid, f"{sid}-scan", walks[0], "scan"))
+    by_reading = _live(_replay_walk(client, sid, f"{sid}-reading", walks[0], "reading"))
     assert len(by_scan) > 10 and len(by_reading) > 10
     assert {p["floor_id"] for p in by_scan + by_reading} == {FLOOR}
     t = np.array([p["t"] for p in by_reading], dtype=float)
@@ -293,3 +297,31 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     assert by_f[tuning["floor_weight"]] == max(by_f.values())
     assert summary["accuracy"]["k"] == tuning["wknn_k"]
     assert tuning["accuracy_floor_m"] == pytest.approx(summary["accuracy"]["p50_error_m"], 1e-3)
+
+
+@needs_site1
+def test_phones_get_each_position_again_refined_and_history_prefers_the_refined(
+    client: TestClient, built_site: dict[str, Any], walks: list[Path]
+) -> None:
+    sid, device = built_site["site_id"], f"{built_site['site_id']}-smoothed"
+    answers = _replay_walk(client, sid, device, walks[0], "scan")
+    live = _live(answers)
+    refined = [p for p in answers if p["smoothed"]]
+    assert live and refined and {p["method"] for p in refined} == {"hmm"}
+    # each refined position repeats a live one's time, a few seconds later in the stream
+    assert {p["t"] for p in refined} <= {p["t"] for p in live}
+    assert [p["t"] for p in answers[:5]] == sorted(p["t"] for p in answers[:5])
+    r = client.get(
+        f"/v1/devices/{device}/positions", params={"limit": 10_000}, headers=make_admin()
+    )
+    assert r.status_code == 200, r.text
+    items = r.json()["items"]
+    times = [p["t"] for p in items]
+    # one position per time: the refined one up to the last refined time, live after it
+    # (the device's silence after its last upload refined the rest too)
+    assert times == sorted(set(times)) and set(times) == {p["t"] for p in live}
+    last_refined = max(p["t"] for p in items if p["smoothed"])
+    assert last_refined >= max(p["t"] for p in refined)
+    assert all(p["smoothed"] == (p["t"] <= last_refined) for p in items)
+    latest = client.get(f"/v1/devices/{device}/position", headers=make_admin()).json()
+    assert latest["smoothed"] is False and latest["t"] == max(p["t"] for p in live)
