@@ -225,6 +225,13 @@ class Settings(BaseSettings):
         "weights, heading noise) from its surveys; off, it keeps the engines' defaults and "
         "learns only the accuracy floor.",
     )
+    radiomap_hmm_walks: int = Field(
+        default=6,
+        ge=0,
+        le=1000,
+        description="Held-out survey walks per fold a build replays through the HMM to choose "
+        "its emission weight (0: chosen on single scans instead).",
+    )
     radiomap_progress_step: float = Field(
         default=0.05,
         gt=0,

@@ -276,6 +276,7 @@ def cross_validate(
     weights: Sequence[float] = (),
     emission_scans_per_fold: int = 300,
     emission_kernel_m: float = 2.0,
+    fold_hook: Callable[[tuple[RadioMap, ...], np.ndarray], None] | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> CrossValidation | None:
     """Locate each walk's scans on maps built without its fold; None with fewer than 2 walks.
@@ -299,6 +300,9 @@ def cross_validate(
         Candidate emission weights.
     emission_scans_per_fold, emission_kernel_m
         Scans scored per fold, and the kernel of the score (m).
+    fold_hook : callable, optional
+        Called with each fold's maps and the mask of its held-out scans, for
+        more tests of the same maps (the HMM's replay of held-out walks).
     progress : callable, optional
         Called with the fraction of folds done.
     """
@@ -332,6 +336,8 @@ def cross_validate(
             scores += total
             floor_scores += floor_total
             scored += n
+        if fold_hook is not None:
+            fold_hook(maps, test)
         if progress is not None:
             progress(done / n_folds)
     if not rows:

@@ -35,6 +35,9 @@ WKNN_K_CANDIDATES = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20)
 EMISSION_WEIGHT_CANDIDATES = (0.02, 0.03, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0)
 """HMM emission (and floor evidence) weights a build scores on held-out scans."""
 
+HMM_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.35)
+"""Emission weights (the floor weight the same) a build replays held-out walks with."""
+
 MAD_TO_STD = 1.4826
 """Scale of the median absolute deviation to a Gaussian standard deviation."""
 
@@ -133,14 +136,26 @@ def heading_spread(walks: Sequence[WalkPdr], offset_deg: float) -> float | None:
     return float(np.clip(spread, *HEADING_STD_RANGE_DEG))
 
 
-def tune_site(walks: Sequence[WalkPdr], held: CrossValidation | None) -> SiteTuning:
-    """Choose a site's constants from its measured survey walks and cross-validation."""
+def tune_site(
+    walks: Sequence[WalkPdr],
+    held: CrossValidation | None,
+    hmm_errors: Mapping[float, float] | None = None,
+) -> SiteTuning:
+    """Choose a site's constants from its measured survey walks and cross-validation.
+
+    ``hmm_errors`` (mean error of the held-out walks replayed through the HMM,
+    per weight) chooses the emission and floor weights where given; the
+    per-scan scores of ``held`` otherwise.
+    """
     base = SiteTuning.defaults()
     pdr = fit_pdr_constants(walks, PdrParams()) if walks else PdrParams()
     spread = heading_spread(walks, pdr.heading_offset_deg)
     k = held.best_k() if held is not None else base.wknn_k
     weight = held.best_emission_weight() if held is not None else None
     floor_weight = held.best_floor_weight() if held is not None else None
+    replayed = {w: e for w, e in (hmm_errors or {}).items() if np.isfinite(e)}
+    if replayed:
+        weight = floor_weight = min(replayed, key=lambda w: (replayed[w], w))
     floor = float(np.median(held.by_k[k].error_m)) if held is not None else base.accuracy_floor_m
     return SiteTuning(
         weinberg_k=pdr.weinberg_k,

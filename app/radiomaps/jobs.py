@@ -71,6 +71,7 @@ class RadioMapBuilds:
                 raster_cell=self.settings.raster_cell,
                 folds=self.settings.radiomap_folds,
                 tune=self.settings.radiomap_tuning,
+                hmm_walks=self.settings.radiomap_hmm_walks,
                 progress=progress,
             )
         # this node's ingest sees the new map version at once (other nodes within the cache TTL)

@@ -79,6 +79,8 @@ class SiteTuningRead(BaseModel):
 class TuningScores(BaseModel):
     """The held-out figure of every candidate the build chose among."""
 
+    hmm_walk_error_m_by_weight: dict[str, float | None] = {}
+    hmm_walks: int = 0
     wknn_mean_error_m_by_k: dict[str, float | None]
     emission_log_score_by_weight: dict[str, float | None]
     floor_log_score_by_weight: dict[str, float | None]

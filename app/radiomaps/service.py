@@ -25,6 +25,7 @@ from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
 from app.engine.hmm.params import HmmParams
+from app.engine.hmm.validate import HeldWalk, candidate_errors
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, measure_walk
 from app.engine.radiomap import (
@@ -38,6 +39,7 @@ from app.engine.radiomap import (
 from app.engine.samples import ImuSamples, RssiReadings
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
+    HMM_WEIGHT_CANDIDATES,
     WKNN_K_CANDIDATES,
     SiteTuning,
     tune_site,
@@ -169,13 +171,19 @@ def _r(value: float, digits: int = 3) -> float | None:
 
 
 def compute_build(
-    inputs: BuildInputs, *, folds: int, tune: bool = True, progress: Progress | None = None
+    inputs: BuildInputs,
+    *,
+    folds: int,
+    tune: bool = True,
+    hmm_walks: int = 6,
+    progress: Progress | None = None,
 ) -> BuildResult:
     """Build every surveyed floor's radio map, calibrate every heard transmitter, estimate
     the maps' accuracy on held-out walks (``folds`` groups of whole walks held out in turn)
-    and, with ``tune``, choose the site's constants on the same folds (otherwise the
-    engines' defaults are kept, with the held-out accuracy floor). Raises Conflict when no
-    scan can be located."""
+    and, with ``tune``, choose the site's constants on the same folds, replaying up to
+    ``hmm_walks`` held-out walks per fold through the HMM (otherwise the engines'
+    defaults are kept, with the held-out accuracy floor). Raises Conflict when no scan
+    can be located."""
     report = progress or (lambda _: None)
     site = inputs.site
     if not inputs.surveys:
@@ -217,6 +225,8 @@ def compute_build(
     }
     fits = calibrate(survey, CALIBRATION, known=known, progress=lambda x: report(0.25 + 0.4 * x))
     report(0.65)
+    measured = _measured_walks(inputs)
+    replays = HmmReplays(inputs, tx_ids, tune_site(measured, None), hmm_walks if tune else 0)
     validation = cross_validate(
         survey,
         plans,
@@ -226,9 +236,12 @@ def compute_build(
         ks=WKNN_K_CANDIDATES,
         emission=HmmParams(),
         weights=EMISSION_WEIGHT_CANDIDATES,
-        progress=lambda x: report(0.65 + 0.25 * x),
+        fold_hook=(lambda maps, test: replays.on_fold(maps, test, survey.scan_walk))
+        if replays.walks
+        else None,
+        progress=lambda x: report(0.65 + 0.3 * x),
     )
-    tuning = tune_site(_measured_walks(inputs), validation)
+    tuning = tune_site(measured, validation, replays.mean_errors())
     if not tune:
         defaults = SiteTuning.defaults()
         floor = (
@@ -272,12 +285,64 @@ def compute_build(
         },
         "accuracy": accuracy,
         "tuning": tuning.as_dict(),
-        "tuning_scores": _tuning_scores(validation),
+        "tuning_scores": _tuning_scores(validation, replays),
     }
     report(1.0)
     return BuildResult(
         maps=maps, fits=fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
     )
+
+
+class HmmReplays:
+    """Held-out survey walks replayed through the HMM on each fold's maps, per candidate weight.
+
+    At most ``per_fold`` walks of each fold (those with inertial samples and
+    two waypoints, evenly spread) are replayed, with the PDR constants and
+    heading noise ``base`` learned from the surveys.
+    """
+
+    def __init__(
+        self, inputs: BuildInputs, tx_ids: tuple[str, ...], base: SiteTuning, per_fold: int
+    ) -> None:
+        index = {tx: i for i, tx in enumerate(tx_ids)}
+        self.walks: dict[int, HeldWalk] = {}
+        if per_fold > 0:
+            for w, s in enumerate(inputs.surveys):
+                if len(s.imu) and s.waypoints.shape[0] >= 2 and s.t.size:
+                    rssi = RssiReadings(s.t, np.array([index[i] for i in s.ids], np.int32), s.rssi)
+                    floor = inputs.site.floor_index[s.floor_id]
+                    self.walks[w] = HeldWalk(rssi, s.imu, s.waypoints, floor)
+        self.per_fold = per_fold
+        self.pdr = base.pdr()
+        self.candidates = [
+            replace(base.hmm(), emission_weight=w, floor_weight=w) for w in HMM_WEIGHT_CANDIDATES
+        ]
+        self.totals = np.zeros((len(self.candidates), 2))
+
+    def on_fold(
+        self, maps: tuple[RadioMap, ...], test: np.ndarray, walk_of_scan: np.ndarray
+    ) -> None:
+        """Replay (some of) the fold's held-out walks on the fold's maps."""
+        held = [w for w in np.unique(walk_of_scan[test]).tolist() if w in self.walks]
+        if len(held) > self.per_fold:
+            held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
+        self.totals += candidate_errors(
+            maps, [self.walks[w] for w in held], self.candidates, self.pdr
+        )
+
+    @property
+    def scored(self) -> int:
+        """Return the walks replayed (per candidate)."""
+        return int(self.totals[0, 1]) if len(self.totals) else 0
+
+    def mean_errors(self) -> dict[float, float]:
+        """Return the mean walk error (m) per candidate weight; empty when none was replayed."""
+        if not self.scored:
+            return {}
+        return {
+            c.emission_weight: float(total / n)
+            for c, (total, n) in zip(self.candidates, self.totals, strict=True)
+        }
 
 
 def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
@@ -290,11 +355,15 @@ def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
     return out
 
 
-def _tuning_scores(validation: CrossValidation | None) -> dict[str, Any] | None:
+def _tuning_scores(
+    validation: CrossValidation | None, replays: HmmReplays
+) -> dict[str, Any] | None:
     """Return the held-out figure of every candidate the tuning chose among."""
     if validation is None:
         return None
     return {
+        "hmm_walk_error_m_by_weight": {str(w): _r(e) for w, e in replays.mean_errors().items()},
+        "hmm_walks": replays.scored,
         "wknn_mean_error_m_by_k": {
             str(k): _r(float(np.mean(h.error_m))) for k, h in validation.by_k.items()
         },
@@ -373,6 +442,7 @@ def build_site(
     raster_cell: float,
     folds: int,
     tune: bool = True,
+    hmm_walks: int = 6,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Run a whole build (read, compute, store) and return the summary with its duration.
@@ -385,7 +455,7 @@ def build_site(
         if site is None:
             raise NotFound(f"site '{site_id}' not found")
         inputs = load_inputs(db=db, site=site, raster_cell=raster_cell)
-    result = compute_build(inputs, folds=folds, tune=tune, progress=progress)
+    result = compute_build(inputs, folds=folds, tune=tune, hmm_walks=hmm_walks, progress=progress)
     with session_scope(sessions) as db:
         site = db.get(Site, site_id)
         if site is None:
