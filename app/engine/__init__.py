@@ -27,10 +27,15 @@ RSSI with a path-loss model (seed 000)
     estimator of last resort.
 
 Fingerprints and dead reckoning (seed 002)
-    ``pdr``: steps from a phone's IMU. ``radiomap``: radio maps from survey
-    walks (offline phase). ``wknn``: weighted k-NN per scan. ``crossval``:
-    held-out accuracy of a radio map. ``hmm/`` (package): the fingerprint +
-    inertial HMM (online phase).
+    ``pdr``: steps from a phone's IMU. ``pdr_fit``: its constants fitted to
+    survey waypoints. ``scans``: WiFi readings grouped into scans, however
+    the client timed them. ``radiomap``: radio maps from survey walks
+    (offline phase). ``wknn``: weighted k-NN per scan. ``crossval``:
+    held-out accuracy of a radio map on walk-level folds. ``hmm/`` (package):
+    the fingerprint + inertial HMM (online phase), and ``hmm/validate`` its
+    replay of held-out walks. ``tuning``: a site's building-dependent
+    constants chosen from its surveys. ``smoothing``: positions refined
+    against the steps that follow them (fixed-lag and full pass).
 
 UWB and fixed locators (seeds 001 and 003)
     ``lateration/`` (package): least-squares fixes and their a-priori

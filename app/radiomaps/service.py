@@ -25,7 +25,7 @@ from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
 from app.engine.hmm.params import HmmParams
-from app.engine.hmm.validate import HeldWalk, candidate_errors
+from app.engine.hmm.validate import HeldWalk, WalkResult, candidate_results, radius_floor
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, measure_walk
 from app.engine.radiomap import (
@@ -242,6 +242,9 @@ def compute_build(
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     tuning = tune_site(measured, validation, replays.mean_errors())
+    floor = replays.radius_floor(tuning.emission_weight)
+    if floor is not None:
+        tuning = replace(tuning, accuracy_floor_m=floor)
     if not tune:
         defaults = SiteTuning.defaults()
         floor = (
@@ -298,7 +301,8 @@ class HmmReplays:
 
     At most ``per_fold`` walks of each fold (those with inertial samples and
     two waypoints, evenly spread) are replayed, with the PDR constants and
-    heading noise ``base`` learned from the surveys.
+    heading noise ``base`` learned from the surveys and no accuracy floor, so
+    the replays also calibrate the radius.
     """
 
     def __init__(
@@ -315,9 +319,10 @@ class HmmReplays:
         self.per_fold = per_fold
         self.pdr = base.pdr()
         self.candidates = [
-            replace(base.hmm(), emission_weight=w, floor_weight=w) for w in HMM_WEIGHT_CANDIDATES
+            replace(base.hmm(), emission_weight=w, floor_weight=w, accuracy_floor_m=0.0)
+            for w in HMM_WEIGHT_CANDIDATES
         ]
-        self.totals = np.zeros((len(self.candidates), 2))
+        self.results: list[list[WalkResult]] = [[] for _ in self.candidates]
 
     def on_fold(
         self, maps: tuple[RadioMap, ...], test: np.ndarray, walk_of_scan: np.ndarray
@@ -326,23 +331,34 @@ class HmmReplays:
         held = [w for w in np.unique(walk_of_scan[test]).tolist() if w in self.walks]
         if len(held) > self.per_fold:
             held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
-        self.totals += candidate_errors(
-            maps, [self.walks[w] for w in held], self.candidates, self.pdr
-        )
+        walks = [self.walks[w] for w in held]
+        for mine, new in zip(
+            self.results, candidate_results(maps, walks, self.candidates, self.pdr), strict=True
+        ):
+            mine += new
 
     @property
     def scored(self) -> int:
         """Return the walks replayed (per candidate)."""
-        return int(self.totals[0, 1]) if len(self.totals) else 0
+        return len(self.results[0]) if self.results else 0
 
     def mean_errors(self) -> dict[float, float]:
-        """Return the mean walk error (m) per candidate weight; empty when none was replayed."""
+        """Return the mean walk score (m) per candidate weight; empty when none was replayed."""
         if not self.scored:
             return {}
         return {
-            c.emission_weight: float(total / n)
-            for c, (total, n) in zip(self.candidates, self.totals, strict=True)
+            c.emission_weight: float(np.mean([r.score for r in results]))
+            for c, results in zip(self.candidates, self.results, strict=True)
         }
+
+    def radius_floor(self, weight: float) -> float | None:
+        """Return the accuracy floor under which the radius holds 68% of the replays' errors."""
+        for c, results in zip(self.candidates, self.results, strict=True):
+            if c.emission_weight == weight and results:
+                error = np.concatenate([r.error for r in results])
+                radius = np.concatenate([r.radius for r in results])
+                return radius_floor(error, radius)
+        return None
 
 
 def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from app.engine.hmm.params import HmmParams
+from app.engine.hmm.validate import radius_floor
 from app.engine.pdr_fit import WalkPdr
 from app.engine.tuning import HEADING_STD_RANGE_DEG, SiteTuning, heading_spread, tune_site
 
@@ -56,3 +57,14 @@ def test_stored_tuning_reads_back_and_missing_values_take_defaults() -> None:
     assert tuned.hmm().emission_weight == 0.05
     # a build stored before some constant was chosen keeps that constant's default
     assert SiteTuning.from_dict({"wknn_k": 3, "unknown": 1}).floor_weight == tuning.floor_weight
+
+
+def test_the_radius_floor_makes_the_radius_hold_68_percent_of_the_errors() -> None:
+    rng = np.random.default_rng(2)
+    error = np.abs(rng.normal(0.0, 5.0, 2000))
+    radius = np.full(2000, 1.0)
+    floor = radius_floor(error, radius)
+    assert np.mean(error <= np.hypot(radius, floor)) == pytest.approx(0.68, abs=0.005)
+    # a radius that already holds enough needs no floor
+    assert radius_floor(error, error + 1.0) == 0.0
+    assert radius_floor(np.zeros(0), np.zeros(0)) == 0.0

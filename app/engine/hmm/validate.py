@@ -72,37 +72,72 @@ def _batches(walk: HeldWalk) -> list[Batch]:
     return out
 
 
-def walk_error(model: EmissionModel, params: HmmParams, pdr: PdrParams, walk: HeldWalk) -> float:
-    """Return the mean error (m) of one walk's estimates inside its waypoints' span.
+@dataclass(frozen=True)
+class WalkResult:
+    """One held-out walk replayed.
 
-    An estimate on a wrong floor counts as ``WRONG_FLOOR_M``; NaN without estimates.
+    ``score`` is its mean error (m, wrong floors counted as ``WRONG_FLOOR_M``);
+    ``error`` and ``radius`` are each right-floor estimate's error and 68%
+    radius (m).
+    """
+
+    score: float
+    error: np.ndarray
+    radius: np.ndarray
+
+
+def replay_walk(
+    model: EmissionModel, params: HmmParams, pdr: PdrParams, walk: HeldWalk
+) -> WalkResult | None:
+    """Replay one walk; score it by the mean error of its estimates inside the waypoints' span.
+
+    An estimate on a wrong floor counts as ``WRONG_FLOOR_M``; None without estimates.
     """
     tracker = HmmTracker(model, params, pdr)
     estimates = [e for b in _batches(walk) for e in tracker.process(b)]
     if not estimates:
-        return float("nan")
+        return None
     t = np.array([e.t for e in estimates], dtype=np.int64)
     truth, inside = interpolate_waypoints(t, walk.waypoints)
     if not inside.any():
-        return float("nan")
+        return None
     xy = np.array([[e.x, e.y] for e in estimates])[inside]
     floor_ok = np.array([e.floor == walk.floor for e in estimates])[inside]
+    radius = np.array([e.accuracy for e in estimates])[inside]
     err = np.hypot(*(xy - truth[inside]).T)
-    return float(np.mean(np.where(floor_ok, err, WRONG_FLOOR_M)))
+    score = float(np.mean(np.where(floor_ok, err, WRONG_FLOOR_M)))
+    return WalkResult(score, err[floor_ok], radius[floor_ok])
 
 
-def candidate_errors(
+def candidate_results(
     maps: Sequence[RadioMap],
     walks: Sequence[HeldWalk],
     candidates: Sequence[HmmParams],
     pdr: PdrParams,
-) -> np.ndarray:
-    """Return the summed walk errors (m) and walks scored per candidate, shape (C, 2)."""
-    out = np.zeros((len(candidates), 2))
-    for c, params in enumerate(candidates):
+) -> list[list[WalkResult]]:
+    """Return every replayed walk's result, per candidate."""
+    out: list[list[WalkResult]] = []
+    for params in candidates:
         model = EmissionModel(maps, params)
-        for walk in walks:
-            e = walk_error(model, params, pdr, walk)
-            if np.isfinite(e):
-                out[c] += (e, 1.0)
+        results = (replay_walk(model, params, pdr, walk) for walk in walks)
+        out.append([r for r in results if r is not None])
     return out
+
+
+def radius_floor(error: np.ndarray, radius: np.ndarray, coverage: float = 0.68) -> float:
+    """Return the floor f (m) for which ``sqrt(radius² + f²)`` holds ``coverage`` of the errors.
+
+    0 when the radius alone already holds that much; found by bisection, the
+    coverage growing with f.
+    """
+    if error.size == 0 or np.mean(error <= radius) >= coverage:
+        return 0.0
+    lo, hi = 0.0, float(np.max(error)) + 1.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        # r' = sqrt(r² + f²)
+        if np.mean(error <= np.hypot(radius, mid)) >= coverage:
+            hi = mid
+        else:
+            lo = mid
+    return hi

@@ -45,8 +45,10 @@ def smoothed_rows(
     estimates: Sequence[Sequence[Estimate]],
     cpu_s: float,
     updates: int,
+    kept: dict[str, dict[str, list[Estimate]]],
 ) -> list[Row]:
-    """Return the rows of a method's estimates refined by each smoother (its CPU added)."""
+    """Return the rows of a method's estimates refined by each smoother (its CPU added);
+    the kept walks' refined estimates go into ``kept``."""
     rows = []
     for label, smoother in SMOOTHERS.items():
         started = time.process_time()
@@ -57,6 +59,9 @@ def smoothed_rows(
             for walk, est in zip(walks, refined, strict=True)
         ]
         rows.append(summarise(f"{name} + {label}", scores, cpu_s + extra, updates))
+        for walk, est in zip(walks, refined, strict=True):
+            if walk.walk_id in kept:
+                kept[walk.walk_id][f"{name} + {label}"] = est
     return rows
 
 
@@ -101,5 +106,5 @@ def evaluate(
         rows.append(summarise(name, scores, cpu, updates))
         run_s[name] = time.perf_counter() - started
         if any(e.odometry is not None for est in estimates for e in est):
-            rows += smoothed_rows(site, walks, name, estimates, cpu, updates)
+            rows += smoothed_rows(site, walks, name, estimates, cpu, updates, kept)
     return Evaluation(rows, kept, run_s=run_s)

@@ -16,6 +16,8 @@ METHOD_COLOURS = {
     "hmm": "tab:green",
     "pf": "tab:blue",
     "pf-radiomap": "tab:red",
+    "hmm + fixed-lag": "tab:purple",
+    "hmm + full smoothing": "tab:cyan",
 }
 """Line colour of each method in the walk plots."""
 
