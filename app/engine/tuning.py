@@ -56,7 +56,7 @@ class SiteTuning:
         Spread (degrees) of survey segments' PDR headings about the truth
         once the offset is applied: the HMM's step heading noise.
     wknn_k : int
-        Number of WKNN neighbours (also the HMM's k-NN start).
+        Number of WKNN neighbours.
     emission_weight : float
         Exponent tempering the HMM's per-scan likelihood of positions.
     floor_weight : float
@@ -112,10 +112,13 @@ class SiteTuning:
         )
 
     def hmm(self, base: HmmParams | None = None) -> HmmParams:
-        """Return HMM constants with the site's neighbours, weights, heading noise and floor."""
+        """Return HMM constants with the site's weights, heading noise and accuracy floor.
+
+        The HMM's k-NN start keeps its own k: the WKNN's best k averages many
+        neighbours on a sparse map, a poor place to restart a track.
+        """
         return replace(
             base or HmmParams(),
-            k=self.wknn_k,
             emission_weight=self.emission_weight,
             floor_weight=self.floor_weight,
             heading_std_deg=self.heading_std_deg,
@@ -138,16 +141,31 @@ def heading_spread(walks: Sequence[WalkPdr], offset_deg: float) -> float | None:
     return float(np.clip(spread, *HEADING_STD_RANGE_DEG))
 
 
+def one_standard_error_choice(scores: Mapping[float, Sequence[float]], default: float) -> float:
+    """Return the candidate nearest ``default`` within one standard error of the best.
+
+    Scores are lower-is-better, one per held-out walk. Held-out walks are few
+    and their errors vary widely, so the best mean is partly luck: a
+    candidate replaces the default only when it is better by more than that.
+    """
+    means = {c: float(np.mean(v)) for c, v in scores.items() if len(v)}
+    best = min(means, key=lambda c: means[c])
+    n = len(scores[best])
+    se = float(np.std(scores[best], ddof=1) / np.sqrt(n)) if n > 1 else 0.0
+    near = [c for c in means if means[c] <= means[best] + se]
+    return min(near, key=lambda c: (abs(np.log(c / default)), c))
+
+
 def tune_site(
     walks: Sequence[WalkPdr],
     held: CrossValidation | None,
-    hmm_errors: Mapping[float, float] | None = None,
+    hmm_weight: float | None = None,
 ) -> SiteTuning:
     """Choose a site's constants from its measured survey walks and cross-validation.
 
-    ``hmm_errors`` (mean error of the held-out walks replayed through the HMM,
-    per weight) chooses the emission and floor weights where given; the
-    per-scan scores of ``held`` otherwise.
+    ``hmm_weight`` (chosen by replaying held-out walks through the HMM) sets
+    the emission and floor weights where given; the per-scan scores of
+    ``held`` choose them otherwise.
     """
     base = SiteTuning.defaults()
     pdr = fit_pdr_constants(walks, PdrParams()) if walks else PdrParams()
@@ -155,9 +173,8 @@ def tune_site(
     k = held.best_k() if held is not None else base.wknn_k
     weight = held.best_emission_weight() if held is not None else None
     floor_weight = held.best_floor_weight() if held is not None else None
-    replayed = {w: e for w, e in (hmm_errors or {}).items() if np.isfinite(e)}
-    if replayed:
-        weight = floor_weight = min(replayed, key=lambda w: (replayed[w], w))
+    if hmm_weight is not None:
+        weight = floor_weight = hmm_weight
     floor = float(np.median(held.by_k[k].error_m)) if held is not None else base.accuracy_floor_m
     return SiteTuning(
         weinberg_k=pdr.weinberg_k,

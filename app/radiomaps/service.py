@@ -42,6 +42,7 @@ from app.engine.tuning import (
     HMM_WEIGHT_CANDIDATES,
     WKNN_K_CANDIDATES,
     SiteTuning,
+    one_standard_error_choice,
     tune_site,
 )
 from app.engine.wknn import WknnParams
@@ -241,7 +242,7 @@ def compute_build(
         else None,
         progress=lambda x: report(0.65 + 0.3 * x),
     )
-    tuning = tune_site(measured, validation, replays.mean_errors())
+    tuning = tune_site(measured, validation, replays.choose(HmmParams().emission_weight))
     floor = replays.radius_floor(tuning.emission_weight)
     if floor is not None:
         tuning = replace(tuning, accuracy_floor_m=floor)
@@ -350,6 +351,16 @@ class HmmReplays:
             c.emission_weight: float(np.mean([r.score for r in results]))
             for c, results in zip(self.candidates, self.results, strict=True)
         }
+
+    def choose(self, default: float) -> float | None:
+        """Return the weight chosen by the one-standard-error rule; None without replays."""
+        if not self.scored:
+            return None
+        scores = {
+            c.emission_weight: [r.score for r in results]
+            for c, results in zip(self.candidates, self.results, strict=True)
+        }
+        return one_standard_error_choice(scores, default)
 
     def radius_floor(self, weight: float) -> float | None:
         """Return the accuracy floor under which the radius holds 68% of the replays' errors."""

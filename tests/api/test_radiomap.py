@@ -16,6 +16,7 @@ from sqlalchemy import func, select
 
 from app.datasets import data_dir
 from app.datasets.ilc import read_floor, read_walk, site_walks
+from app.engine.hmm.params import HmmParams
 from app.evaluation.metrics import truth_at
 from app.importers.ilc import survey_body, walk_samples
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
@@ -162,7 +163,8 @@ def test_devices_get_positions_from_the_build(
     positions = _replay(client, sid, f"{sid}-hmm", walks[N_SURVEYS])
     assert positions and {p["method"] for p in positions} == {"hmm"}
     # each filter's radius includes the build's accuracy floor
-    held_out = built_site["summary"]["tuning"]["accuracy_floor_m"]
+    # (positions are rounded to the millimetre)
+    held_out = built_site["summary"]["tuning"]["accuracy_floor_m"] - 1e-3
     assert all(p["floor_id"] == FLOOR and p["accuracy"] >= held_out for p in positions)
     r = client.put(f"/v1/sites/{sid}", json={"name": sid, "engine": "pf"}, headers=admin)
     assert r.status_code == 200 and r.json()["engine"] == "pf"
@@ -291,11 +293,12 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     # the chosen k and weight are the best of the candidates, as the scores show
     by_k = {int(k): v for k, v in scores["wknn_mean_error_m_by_k"].items()}
     assert by_k[tuning["wknn_k"]] == min(by_k.values())
-    # the emission and floor weights are the ones whose replay of held-out survey walks
-    # through the HMM erred least
+    # the emission and floor weights come from replaying held-out survey walks through the
+    # HMM: the default unless another erred less by more than the walks' luck
     assert scores["hmm_walks"] > 0
     by_w = {float(w): v for w, v in scores["hmm_walk_error_m_by_weight"].items()}
-    assert by_w[tuning["emission_weight"]] == min(by_w.values())
+    default = HmmParams().emission_weight
+    assert by_w[tuning["emission_weight"]] <= by_w[default]
     assert tuning["floor_weight"] == tuning["emission_weight"]
     assert scores["emission_log_score_by_weight"] and scores["floor_log_score_by_weight"]
     assert summary["accuracy"]["k"] == tuning["wknn_k"]

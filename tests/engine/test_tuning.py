@@ -8,7 +8,13 @@ import pytest
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.validate import radius_floor
 from app.engine.pdr_fit import WalkPdr
-from app.engine.tuning import HEADING_STD_RANGE_DEG, SiteTuning, heading_spread, tune_site
+from app.engine.tuning import (
+    HEADING_STD_RANGE_DEG,
+    SiteTuning,
+    heading_spread,
+    one_standard_error_choice,
+    tune_site,
+)
 
 
 def _walk(errors: list[float], distance: float = 40.0, stride_sum: float = 100.0) -> WalkPdr:
@@ -53,7 +59,9 @@ def test_without_surveys_the_defaults_stand() -> None:
 def test_stored_tuning_reads_back_and_missing_values_take_defaults() -> None:
     tuning = SiteTuning.defaults()
     tuned = SiteTuning.from_dict(tuning.as_dict() | {"wknn_k": 12, "emission_weight": 0.05})
-    assert tuned.wknn_k == 12 and tuned.wknn().k == 12 and tuned.hmm().k == 12
+    assert tuned.wknn_k == 12 and tuned.wknn().k == 12
+    # the HMM restarts from its own k: a large WKNN k averages far points on a sparse map
+    assert tuned.hmm().k == HmmParams().k
     assert tuned.hmm().emission_weight == 0.05
     # a build stored before some constant was chosen keeps that constant's default
     assert SiteTuning.from_dict({"wknn_k": 3, "unknown": 1}).floor_weight == tuning.floor_weight
@@ -68,3 +76,14 @@ def test_the_radius_floor_makes_the_radius_hold_68_percent_of_the_errors() -> No
     # a radius that already holds enough needs no floor
     assert radius_floor(error, error + 1.0) == 0.0
     assert radius_floor(np.zeros(0), np.zeros(0)) == 0.0
+
+
+def test_a_candidate_replaces_the_default_only_when_better_by_more_than_luck() -> None:
+    rng = np.random.default_rng(4)
+    noisy = {w: (10.0 + rng.normal(0.0, 5.0, 30)).tolist() for w in (0.05, 0.1, 0.2, 0.35)}
+    # a hair better somewhere, but well within the walks' spread: the default stays
+    noisy[0.1] = [v - 0.3 for v in noisy[0.2]]
+    assert one_standard_error_choice(noisy, 0.2) == 0.2
+    # clearly better: chosen
+    noisy[0.05] = [v - 6.0 for v in noisy[0.2]]
+    assert one_standard_error_choice(noisy, 0.2) == 0.05

@@ -12,11 +12,15 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from app.datasets import data_dir
 from app.evaluation.ilc.evaluate import evaluate
 from app.evaluation.ilc.experiment import add_split_arguments, prepare_experiment
 from app.evaluation.ilc.methods import METHODS
 from app.evaluation.ilc.plots import plot_walk
+from app.evaluation.ilc.score import summarise
+from app.evaluation.ilc.server import evaluate_through_server
 from app.evaluation.ilc.table import COLUMNS, table_cells
+from app.importers.ilc import WIFI_TIMES
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -29,6 +33,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--plots", type=Path, help="folder for PNGs of a few walks")
     parser.add_argument("--n-plots", type=int, default=4)
+    parser.add_argument(
+        "--through-server",
+        action="store_true",
+        help="add a last row: the same split replayed through a fresh `locus serve` over HTTP",
+    )
+    parser.add_argument("--wifi-times", choices=WIFI_TIMES, default="scan")
     parser.add_argument(
         "--pf-unbatched",
         action="store_true",
@@ -80,6 +90,19 @@ def main(argv: Sequence[str] | None = None) -> None:
             batched=not args.pf_unbatched,
             progress=lambda m, i: bar.update(tasks[m], completed=i),
         )
+    if args.through_server:
+        surveyed = set(exp.train) - set(exp.validation)
+        with console.status("through a server") as status:
+            run = evaluate_through_server(
+                args.site or data_dir() / "ilc" / "site1",
+                exp.site.floors,
+                [w for w in exp.site.walks if w.walk_id in surveyed],
+                walks,
+                wifi_times=args.wifi_times,
+                status=lambda s: status.update(s),
+            )
+        console.print(f"the server's build chose: {run.build.get('tuning')}")
+        result.rows.append(summarise(f"server ({args.wifi_times})", run.scores, 0.0, 0))
     table = Table(title=f"ILC site1, {len(walks)} held-out walks (split by walk id)")
     for i, col in enumerate(COLUMNS):
         table.add_column(col, justify="left" if i == 0 else "right")
