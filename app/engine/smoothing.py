@@ -172,7 +172,7 @@ class FixedLagSmoother:
 
     Holds the positions of the last ``window_ms + lag_ms`` of measurement
     time. ``push`` takes the filter's new positions and returns the refined
-    ones that are now due (``smoothed`` set), each solved exactly as
+    ones that are now due (``smoothed`` set), each with one banded solve, as
     ``fixed_lag`` solves it over a whole track.
     """
 
@@ -195,21 +195,25 @@ class FixedLagSmoother:
         if not self.held:
             return []
         horizon = max(self.held[-1].t, now_t if now_t is not None else -1)
-        due = [e for e in self.held if self.done_t < e.t <= horizon - p.lag_ms]
-        out = []
-        for e in due:
-            around = [
-                h
-                for h in self.held
-                if e.t - p.window_ms <= h.t <= e.t + p.lag_ms and h.floor == e.floor
-            ]
-            refined = fixed_lag(around, p)
-            out.append(replace(refined[around.index(e)], smoothed=True))
+        due = [i for i, e in enumerate(self.held) if self.done_t < e.t <= horizon - p.lag_ms]
+        out = [replace(self._refine(i), smoothed=True) for i in due]
         if due:
-            self.done_t = due[-1].t
+            self.done_t = self.held[due[-1]].t
         keep_from = self.done_t - p.window_ms
         self.held = [h for h in self.held if h.t >= keep_from]
         return out
+
+    def _refine(self, i: int) -> Estimate:
+        """Return held position i solved with its floor run's positions in its window."""
+        p, held, e = self.params, self.held, self.held[i]
+        lo, hi = i, i + 1
+        while lo > 0 and held[lo - 1].floor == e.floor and held[lo - 1].t >= e.t - p.window_ms:
+            lo -= 1
+        while hi < len(held) and held[hi].floor == e.floor and held[hi].t <= e.t + p.lag_ms:
+            hi += 1
+        t, xy, sigma, odo, _ = _arrays(held[lo:hi])
+        x, y = smooth_positions(t, xy, sigma, odo, p)[i - lo]
+        return replace(e, x=float(x), y=float(y))
 
     def flush(self) -> list[Estimate]:
         """Return every held position not yet refined, refined with what is known (stream end)."""
