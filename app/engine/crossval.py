@@ -251,7 +251,7 @@ def emission_log_scores(
         scored += 1
         f = position[int(held.scan_floor[r])]
         tx, rssi = held.reading_tx[readings], held.reading_rssi[readings]
-        lls = [model.log_likelihood(g, tx, rssi) for g in range(len(maps))]
+        lls = model.log_likelihoods(tx, rssi)
         # ln K_j = -|x_j - x|² / 2 s²
         log_kernel = -0.5 * np.sum((model.xy[f] - held.scan_xy[r]) ** 2, axis=1) / kernel_m**2
         scaled = w * lls[f][None, :]

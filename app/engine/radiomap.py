@@ -22,7 +22,7 @@ transmitter always heard there is now absent.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy import sparse
@@ -235,6 +235,36 @@ def locate_scans(
 
 
 @dataclass(frozen=True, eq=False)
+class MapReferences:
+    """The survey scans a floor's map was pooled from, kept as reference fingerprints.
+
+    Per-scan k-NN (``app.engine.scan_knn``) compares a scan with each of
+    these rather than with the pooled cells.
+
+    Attributes
+    ----------
+    xy : ndarray of float32, shape (S, 2)
+        Surveyed position (m) of each scan.
+    walk : ndarray of int32, shape (S,)
+        Survey walk of each scan (numbers are only compared, never shown).
+    scan : ndarray of int32, shape (R,)
+        Scan row of each reading.
+    col : ndarray of int32, shape (R,)
+        Map column (position in ``RadioMap.tx``) of each reading.
+    rssi : ndarray of float32, shape (R,)
+        RSSI (dBm) of each reading.
+    """
+
+    xy: np.ndarray
+    walk: np.ndarray
+    scan: np.ndarray
+    col: np.ndarray
+    rssi: np.ndarray
+
+    KEYS: ClassVar[tuple[str, ...]] = ("xy", "walk", "scan", "col", "rssi")
+
+
+@dataclass(frozen=True, eq=False)
 class RadioMap:
     """The fingerprints of one floor.
 
@@ -260,6 +290,8 @@ class RadioMap:
         Probability that a scan at the point hears the transmitter.
     weight : ndarray of float32, shape (P,)
         Kernel weight of the scans pooled into each point (≈ number of scans).
+    references : MapReferences, optional
+        The scans pooled, for per-scan k-NN; None for maps stored without them.
     """
 
     floor: int
@@ -272,6 +304,7 @@ class RadioMap:
     var: np.ndarray
     detect: np.ndarray
     weight: np.ndarray
+    references: MapReferences | None = None
 
     @property
     def n_points(self) -> int:
@@ -309,7 +342,11 @@ class RadioMap:
             "var": self.var,
             "detect": self.detect,
             "weight": self.weight,
-        }
+        } | (
+            {}
+            if self.references is None
+            else {f"ref_{k}": getattr(self.references, k) for k in MapReferences.KEYS}
+        )
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, Any]) -> RadioMap:
@@ -326,6 +363,15 @@ class RadioMap:
             var=np.asarray(arrays["var"], dtype=np.float32),
             detect=np.asarray(arrays["detect"], dtype=np.float32),
             weight=np.asarray(arrays["weight"], dtype=np.float32),
+            references=MapReferences(
+                xy=np.asarray(arrays["ref_xy"], dtype=np.float32).reshape(-1, 2),
+                walk=np.asarray(arrays["ref_walk"], dtype=np.int32),
+                scan=np.asarray(arrays["ref_scan"], dtype=np.int32),
+                col=np.asarray(arrays["ref_col"], dtype=np.int32),
+                rssi=np.asarray(arrays["ref_rssi"], dtype=np.float32),
+            )
+            if "ref_xy" in arrays
+            else None,
         )
 
 
@@ -472,4 +518,11 @@ def build_radio_map(
         var=np.where(heard, var, np.nan).astype(np.float32),
         detect=detect.astype(np.float32),
         weight=w_all.astype(np.float32),
+        references=MapReferences(
+            xy=s.scan_xy.astype(np.float32),
+            walk=s.scan_walk.astype(np.int32),
+            scan=r_scan.astype(np.int32),
+            col=r_col.astype(np.int32),
+            rssi=r.astype(np.float32),
+        ),
     )

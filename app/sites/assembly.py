@@ -160,6 +160,7 @@ def _with_radiomap(
                 var=m.var,
                 detect=m.detect,
                 weight=m.weight,
+                references=m.references,
             )
         )
     completed = Emitters(

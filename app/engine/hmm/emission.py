@@ -1,7 +1,17 @@
 """The HMM's emission (step 3 in ``app.engine.hmm``) and its k-NN start (step 1).
 
-Per-floor log-likelihood tables of every reference point, prepared once per
-site and shared by all devices.
+Two emissions, prepared once per site and shared by all devices:
+
+- where the maps carry the survey scans they were pooled from, a point's
+  evidence is how well the survey scans around it match the scan, by the
+  per-scan k-NN distance (``app.engine.scan_knn``): ``ln L_j = -c (D_j -
+  d_min)``, ``D_j`` the soft minimum of the distances of the scans within
+  ``knn_radius_m`` of the point, weighted by a Gaussian kernel of distance,
+  ``d_min`` the best survey scan's anywhere. It compares scans only on what
+  both heard, so a sparse survey does not make unmeasured transmitters
+  evidence against a point;
+- otherwise (maps stored without their scans), the seed's per-point
+  Gaussian with detection rates.
 """
 
 from __future__ import annotations
@@ -9,9 +19,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
 
 from app.engine.hmm.params import HmmParams
 from app.engine.radiomap import RadioMap
+from app.engine.scan_knn import ReferenceScans
 from app.engine.wknn import Fingerprints
 
 
@@ -67,6 +80,61 @@ class EmissionModel:
             1.0 / params.unmapped_var_db2,
         )
         self.params = params
+        self.references: ReferenceScans | None = None
+        self.pool: list[sparse.csr_matrix] = []
+        self.ref_blocks: list[slice] = []
+        if self.maps and all(m.references is not None for m in self.maps):
+            self._prepare_references()
+        self._cache: tuple[bytes, np.ndarray] | None = None
+
+    def _prepare_references(self) -> None:
+        """Gather the survey scans and each point's kernel over its floor's scans."""
+        p = self.params
+        self.references = ReferenceScans.from_maps(self.maps, self.n_tx)
+        start = 0
+        for m, xy in zip(self.maps, self.xy, strict=True):
+            n = m.references.xy.shape[0] if m.references is not None else 0
+            block = slice(start, start + n)
+            start += n
+            near = cKDTree(xy).sparse_distance_matrix(
+                cKDTree(self.references.xy[block]), p.knn_radius_m, output_type="ndarray"
+            )
+            # K_js = exp(-|x_j - x_s|² / 2b²), rows normalised
+            w = np.exp(-0.5 * (near["v"] / p.knn_pool_m) ** 2)
+            pool = sparse.csr_matrix((w, (near["i"], near["j"])), shape=(xy.shape[0], n))
+            total = np.asarray(pool.sum(axis=1)).ravel()
+            self.pool.append(
+                sparse.diags(np.where(total > 0, 1.0 / np.maximum(total, 1e-300), 0.0)) @ pool
+            )
+            self.ref_blocks.append(block)
+
+    def _distances(self, tx: np.ndarray, rssi: np.ndarray) -> np.ndarray:
+        """Return the scan's k-NN distance to every survey scan (cached for the last scan)."""
+        assert self.references is not None
+        key = np.asarray(tx, np.int64).tobytes() + np.asarray(rssi, np.float64).tobytes()
+        if self._cache is None or self._cache[0] != key:
+            self._cache = (key, self.references.distances(tx, rssi))
+        return self._cache[1]
+
+    def log_likelihoods(self, tx: np.ndarray, rssi: np.ndarray) -> list[np.ndarray]:
+        """Return the tempered log-likelihood of one scan at every point of every map."""
+        if self.references is None:
+            return [self.log_likelihood(f, tx, rssi) for f in range(len(self.maps))]
+        p = self.params
+        d = self._distances(tx, rssi)
+        if not np.isfinite(d).any():
+            # nothing in common with the survey: no evidence either way
+            return [np.zeros(m.n_points) for m in self.maps]
+        best = float(d.min())
+        # e_s = exp(-(d_s - d_min) / τ)
+        e = np.exp(-(d - best) / p.knn_pool_db)
+        out = []
+        for pool, block in zip(self.pool, self.ref_blocks, strict=True):
+            pooled = pool @ e[block]
+            # D_j - d_min = -τ ln Σ_s K_js e_s, at most knn_max_db
+            excess = np.minimum(-p.knn_pool_db * np.log(np.maximum(pooled, 1e-300)), p.knn_max_db)
+            out.append(-p.emission_weight * p.knn_nats_per_db * excess)
+        return out
 
     def is_mapped(self, tx: np.ndarray) -> np.ndarray:
         """Return which site transmitter indices some floor's map has, shape (n,)."""
@@ -92,6 +160,8 @@ class EmissionModel:
         rssi : ndarray, shape (n,)
             Their RSSI (dBm).
         """
+        if self.references is not None:
+            return self.log_likelihoods(tx, rssi)[f]
         p = self.params
         tx = np.asarray(tx, dtype=np.int64)
         rssi = np.asarray(rssi, dtype=np.float32)
@@ -114,7 +184,15 @@ class EmissionModel:
         return p.emission_weight * ll
 
     def knn(self, f: int, tx: np.ndarray, rssi: np.ndarray, k: int) -> np.ndarray:
-        """Return the weighted mean position (m) of the k nearest fingerprints on map ``f``."""
+        """Return the weighted mean position (m) of the k nearest fingerprints on map ``f``.
+
+        With survey scans, the nearest are scans of the map's floor weighted as
+        the per-scan k-NN weighs them; otherwise the map's pooled points.
+        """
+        if self.references is not None:
+            d = self._distances(tx, rssi)[self.ref_blocks[f]]
+            if np.isfinite(d).any():
+                return self.references.weighted_mean(d, self.ref_blocks[f], k)
         d2 = self.fingerprints.sq_distances(tx, rssi)
         start = sum(m.n_points for m in self.maps[:f])
         d = np.sqrt(d2[start : start + self.maps[f].n_points])

@@ -41,6 +41,19 @@ class HmmParams:
         its floor long before it is sure of its position.
     loglik_floor : float
         Floor (nats) of one heard transmitter's log-likelihood at a point.
+    knn_nats_per_db : float
+        Where the maps carry their survey scans, a point's untempered
+        log-likelihood falls by this much per dB its soft-nearest survey
+        scans match the scan worse than the best survey scan anywhere
+        (tempered by ``emission_weight``: at 0.2, 1 nat per dB).
+    knn_pool_m : float
+        Bandwidth (m) of the Gaussian kernel pooling survey scans into a point.
+    knn_radius_m : float
+        Survey scans farther than this (m) from a point do not describe it.
+    knn_pool_db : float
+        Temperature (dB) of the soft minimum of the pooled scans' distances.
+    knn_max_db : float
+        A point's distance counts at most this much (dB) above the best.
     unmapped_dbm : float
         Mean RSSI (dBm) assumed at points where a transmitter was never heard:
         the sensitivity floor.
@@ -91,6 +104,11 @@ class HmmParams:
     emission_weight: float = 0.2
     floor_weight: float = 0.2
     loglik_floor: float = -8.0
+    knn_nats_per_db: float = 5.0
+    knn_pool_m: float = 1.5
+    knn_radius_m: float = 3.0
+    knn_pool_db: float = 1.0
+    knn_max_db: float = 30.0
     unmapped_dbm: float = -95.0
     unmapped_var_db2: float = 36.0
     unmapped_detect: float = 0.02

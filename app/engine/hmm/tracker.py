@@ -248,7 +248,7 @@ class HmmTracker:
     def _scan(self, t: int, index: np.ndarray, out: list[Estimate]) -> None:
         p, model = self.params, self.model
         tx, rssi = unique_readings(self.scan_tx[index], self.scan_rssi[index])
-        ll = [model.log_likelihood(f, tx, rssi) for f in range(len(model.maps))]
+        ll = model.log_likelihoods(tx, rssi)
         # per-floor marginal under the floor's own tempering: ln mean_j L_j^(w_f / w)
         rescale = p.floor_weight / p.emission_weight
         marginal = np.array([logsumexp(rescale * v) - np.log(v.size) for v in ll])

@@ -37,6 +37,7 @@ from app.datasets import data_dir
 from app.datasets.ilc import Walk, read_floor, read_walk, site_walks
 from app.engine.samples import Estimate
 from app.evaluation.ilc.experiment import add_split_arguments
+from app.evaluation.ilc.knn_baseline import scan_knn_scores
 from app.evaluation.ilc.score import WalkScore, score_walk, summarise
 from app.evaluation.ilc.table import COLUMNS, table_cells
 from app.evaluation.split import split_ids, walk_unit
@@ -256,6 +257,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     for i, col in enumerate(COLUMNS):
         table.add_column(col, justify="left" if i == 0 else "right")
     table.add_row(*table_cells(row))
+    with console.status("per-scan k-NN on the same split"):
+        baseline = scan_knn_scores(floors, train_walks, held)
+    table.add_row(*table_cells(summarise("per-scan k-NN (same surveys)", baseline, 0.0, 0)))
     console.print(table)
     console.print(f"replay wall time {run.wall_s:.0f} s")
     if args.save:

@@ -1,0 +1,209 @@
+"""Per-scan k-NN against every survey scan: the strongest plain fingerprint method.
+
+The benchmark's best per-scan locator on smartphone mall data (see the
+README's references) keeps every survey scan as a reference point, at the
+position interpolated between its walk's waypoints, instead of pooling
+scans into grid cells, and compares two scans only on what both heard:
+
+- ``d = Σ_a w_a |s_a - r_a| / Σ_a w_a`` over the transmitters ``a`` both
+  scans heard, with ``w_a = (1 / walks that heard a)^rarity_power`` (rare
+  transmitters say more about where a scan is);
+- plus ``penalty · (1 - shared)²``, ``shared`` being the share of the two
+  scans' signal (dB above ``floor_dbm``) on common transmitters: what only
+  one of them heard counts against the match without imputing a level;
+- the ``k`` nearest weighted by ``(d / d_min)^-weight_power``, on the
+  floor their weights favour.
+
+Transmitters heard in fewer than ``min_heard`` survey scans are left out,
+of the references and of the query alike: one the survey never heard (a
+phone's hotspot, an access point installed since) says nothing about where
+a scan is.
+References are held dense, column-major over the usable transmitters (a
+five-floor mall: 7,000 scans × 2,000 transmitters, 57 MB in float32), so a
+query gathers the columns of its own transmitters only and costs (reference
+scans × transmitters heard), whatever the site's transmitter count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.engine.radiomap import RadioMap, Survey
+
+
+@dataclass(frozen=True)
+class ScanKnnParams:
+    """Constants of the per-scan k-NN.
+
+    Attributes
+    ----------
+    k : int
+        Nearest reference scans averaged.
+    min_heard : int
+        Transmitters heard in fewer survey scans than this are ignored.
+    floor_dbm : float
+        Signal level counted as nothing when weighing what two scans share.
+    unshared_penalty : float
+        Distance (dB) added when two scans share nothing, scaled by
+        ``(1 - shared)²``.
+    rarity_power : float
+        Exponent of a transmitter's weight ``(1 / walks that heard it)^p``.
+    weight_power : float
+        Exponent of the neighbour weights ``(d / d_min)^-p``.
+    no_common_db : float
+        Mean absolute difference assumed when two scans share no transmitter.
+    """
+
+    k: int = 10
+    min_heard: int = 5
+    floor_dbm: float = -100.0
+    unshared_penalty: float = 50.0
+    rarity_power: float = 0.2
+    weight_power: float = 4.0
+    no_common_db: float = 40.0
+
+
+@dataclass(frozen=True)
+class ScanFix:
+    """One scan located: position (m), floor index, and the best match's distance (dB)."""
+
+    xy: np.ndarray
+    floor: int
+    distance: float
+
+
+class ReferenceScans:
+    """Survey scans kept as reference fingerprints, prepared for per-scan queries.
+
+    Parameters
+    ----------
+    survey : Survey
+        Located survey scans (positions from the waypoints).
+    n_tx : int
+        Number of site transmitter indices (queries may name any below it).
+    params : ScanKnnParams
+        Constants.
+    """
+
+    def __init__(self, survey: Survey, n_tx: int, params: ScanKnnParams | None = None) -> None:
+        self.params = p = params or ScanKnnParams()
+        n_tx = max(n_tx, int(survey.reading_tx.max(initial=-1)) + 1)
+        tx = survey.reading_tx.astype(np.int64)
+        heard = np.bincount(tx, minlength=n_tx)
+        walk = survey.scan_walk[survey.reading_scan].astype(np.int64)
+        pairs = np.unique(np.stack([tx, walk]), axis=1)
+        walks_heard = np.bincount(pairs[0], minlength=n_tx)
+        self.usable = heard >= p.min_heard
+        # w_a = (1 / walks that heard a)^p
+        self.tx_weight = np.where(self.usable, np.maximum(walks_heard, 1.0) ** -p.rarity_power, 0.0)
+        keep = self.usable[tx]
+        # dense, column-major over usable transmitters: a query gathers whole columns
+        self.column = np.full(n_tx, -1, dtype=np.int64)
+        self.column[self.usable] = np.arange(int(self.usable.sum()))
+        level = np.maximum(survey.reading_rssi[keep] - p.floor_dbm, 0.0)
+        self.matrix = np.zeros((survey.n_scans, int(self.usable.sum())), np.float32, order="F")
+        np.maximum.at(self.matrix, (survey.reading_scan[keep], self.column[tx[keep]]), level)
+        self.total = self.matrix.sum(axis=1, dtype=np.float64)
+        self.xy = np.asarray(survey.scan_xy, dtype=float)
+        self.floor = np.asarray(survey.scan_floor, dtype=np.int64)
+        self.n_tx = n_tx
+
+    @classmethod
+    def from_maps(
+        cls, maps: Sequence[RadioMap], n_tx: int, params: ScanKnnParams | None = None
+    ) -> ReferenceScans:
+        """Gather the reference scans every map carries (all must carry them)."""
+        parts = []
+        for m in maps:
+            ref = m.references
+            if ref is None:
+                raise ValueError(f"the map of floor {m.floor} carries no reference scans")
+            n = ref.xy.shape[0]
+            parts.append(
+                Survey(
+                    scan_t=np.zeros(n, dtype=np.int64),
+                    scan_xy=ref.xy.astype(float),
+                    scan_floor=np.full(n, m.floor, dtype=np.int32),
+                    scan_walk=ref.walk.astype(np.int32),
+                    reading_scan=ref.scan.astype(np.int32),
+                    reading_tx=np.asarray(m.tx, dtype=np.int32)[ref.col],
+                    reading_rssi=ref.rssi.astype(float),
+                )
+            )
+        return cls(Survey.concat(parts), n_tx, params)
+
+    @property
+    def n_scans(self) -> int:
+        """Number of reference scans."""
+        return int(self.xy.shape[0])
+
+    def distances(self, tx: np.ndarray, rssi: np.ndarray) -> np.ndarray:
+        """Return the distance (dB) of one scan to every reference scan, shape (n_scans,).
+
+        Parameters
+        ----------
+        tx : ndarray of int, shape (n,)
+            Unique site transmitter indices heard (any outside the site are ignored).
+        rssi : ndarray, shape (n,)
+            Their RSSI (dBm).
+        """
+        p = self.params
+        tx = np.asarray(tx, dtype=np.int64)
+        rssi = np.asarray(rssi, dtype=float)
+        inside = (tx >= 0) & (tx < self.n_tx)
+        tx, rssi = tx[inside], rssi[inside]
+        # transmitters the survey never heard (installed since, a phone's hotspot) say nothing
+        on = self.usable[tx]
+        tx, level = tx[on], np.maximum(rssi[on] - p.floor_dbm, 0.0)
+        query_total = float(level.sum())
+        if tx.size == 0:
+            return np.full(self.n_scans, np.inf)
+        ref = self.matrix[:, self.column[tx]]
+        common = (ref > 0).astype(np.float32)
+        w = self.tx_weight[tx].astype(np.float32)
+        common_weight = common @ w
+        # d₁ = Σ w |s - r| / Σ w over common transmitters
+        level32 = level.astype(np.float32)
+        diff = np.abs(ref - level32)
+        diff *= common
+        mean_abs = np.where(
+            common_weight > 0, (diff @ w) / np.maximum(common_weight, 1e-12), p.no_common_db
+        )
+        # shared = (Σ_common r + Σ_common s) / (Σ r + Σ s)
+        shared = (ref.sum(axis=1) + common @ level32) / np.maximum(self.total + query_total, 1e-12)
+        return mean_abs + p.unshared_penalty * (1.0 - shared) ** 2
+
+    def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
+        """Return the position (m) of the ``k`` nearest scans of ``block``.
+
+        ``d`` are the block's distances; weights are ``(d / d_min)^-weight_power``.
+        """
+        k = min(k or self.params.k, d.size)
+        near = np.argpartition(d, k - 1)[:k]
+        near = near[np.isfinite(d[near])]
+        best = max(float(d[near].min()), 1e-3)
+        weight = (np.maximum(d[near], best) / best) ** -self.params.weight_power
+        return weight @ self.xy[block][near] / weight.sum()
+
+    def locate(self, tx: np.ndarray, rssi: np.ndarray, k: int | None = None) -> ScanFix | None:
+        """Locate one scan: the k nearest reference scans on their favoured floor.
+
+        Returns None when the scan shares no usable transmitter with the survey.
+        """
+        d = self.distances(tx, rssi)
+        if not np.isfinite(d).any():
+            return None
+        k = min(k or self.params.k, d.size)
+        near = np.argpartition(d, k - 1)[:k]
+        dn = d[near]
+        best = max(float(dn.min()), 1e-3)
+        # w_i = (d_i / d_min)^-p
+        weight = (np.maximum(dn, best) / best) ** -self.params.weight_power
+        floors = self.floor[near]
+        floor = int(np.bincount(floors, weights=weight).argmax())
+        on = floors == floor
+        xy = weight[on] @ self.xy[near[on]] / weight[on].sum()
+        return ScanFix(xy=xy, floor=floor, distance=float(dn.min()))

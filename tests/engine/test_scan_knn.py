@@ -1,0 +1,121 @@
+"""Per-scan k-NN against survey scans, and the HMM emission built on it.
+
+A corridor 40 m long is surveyed every metre by a phone hearing path-loss
+transmitters; the scan k-NN must find scans from a second walk where they
+were made, compare scans only on what both heard, and travel with the radio
+map through storage so the HMM can use it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.params import HmmParams
+from app.engine.radiomap import RadioMapParams, Survey, build_radio_map
+from app.engine.scan_knn import ReferenceScans, ScanKnnParams
+from app.radiomaps.codec import decode_map, encode_map
+
+TX_X = np.array([0.0, 10.0, 20.0, 30.0, 40.0])
+"""Transmitters along the corridor, 2 m off its axis."""
+
+
+def _heard(x: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Transmitters heard at ``x`` (within 25 m) and their RSSI, -40 - 25 log10(r) ± 2 dB."""
+    r = np.hypot(TX_X - x, 2.0)
+    on = r < 25.0
+    rssi = -40.0 - 25.0 * np.log10(r[on]) + rng.normal(0.0, 2.0, int(on.sum()))
+    return np.flatnonzero(on), rssi
+
+
+def _walk(xs: np.ndarray, rng: np.random.Generator, walk: int) -> Survey:
+    scan, tx, rssi = [], [], []
+    for i, x in enumerate(xs):
+        t, r = _heard(float(x), rng)
+        scan += [i] * t.size
+        tx += t.tolist()
+        rssi += r.tolist()
+    n = xs.size
+    return Survey(
+        scan_t=np.arange(n, dtype=np.int64) * 1000,
+        scan_xy=np.stack([xs, np.full(n, 1.0)], axis=1),
+        scan_floor=np.zeros(n, dtype=np.int32),
+        scan_walk=np.full(n, walk, dtype=np.int32),
+        reading_scan=np.array(scan, dtype=np.int32),
+        reading_tx=np.array(tx, dtype=np.int32),
+        reading_rssi=np.array(rssi, dtype=float),
+    )
+
+
+@pytest.fixture(scope="module")
+def survey() -> Survey:
+    rng = np.random.default_rng(3)
+    xs = np.arange(0.0, 40.5, 1.0)
+    return Survey.concat([_walk(xs, rng, 0), _walk(xs + 0.5, rng, 1)])
+
+
+def test_a_scan_is_located_where_it_was_made(survey: Survey) -> None:
+    refs = ReferenceScans(survey, n_tx=TX_X.size, params=ScanKnnParams(min_heard=1))
+    rng = np.random.default_rng(11)
+    errors = []
+    for x in (3.3, 12.7, 25.2, 36.0):
+        tx, rssi = _heard(x, rng)
+        fix = refs.locate(tx, rssi, k=4)
+        assert fix is not None and fix.floor == 0
+        errors.append(abs(fix.xy[0] - x))
+    assert max(errors) < 3.0
+
+
+def test_what_only_one_scan_heard_is_a_penalty_and_unsurveyed_transmitters_say_nothing(
+    survey: Survey,
+) -> None:
+    refs = ReferenceScans(survey, n_tx=TX_X.size + 1, params=ScanKnnParams(min_heard=1))
+    rng = np.random.default_rng(2)
+    tx, rssi = _heard(20.0, rng)
+    full = refs.distances(tx, rssi)
+    # dropping one transmitter every nearby survey scan heard makes them all match worse
+    partial = refs.distances(tx[1:], rssi[1:])
+    near = np.abs(refs.xy[:, 0] - 20.0) < 2.0
+    assert np.all(partial[near] > full[near])
+    # a transmitter no survey scan heard changes nothing
+    extra = refs.distances(np.r_[tx, TX_X.size], np.r_[rssi, -70.0])
+    assert extra == pytest.approx(full)
+    # a query that shares nothing with the survey has no distance and no fix
+    assert np.isinf(refs.distances(np.array([TX_X.size]), np.array([-50.0]))).all()
+    assert refs.locate(np.array([TX_X.size]), np.array([-50.0])) is None
+
+
+def test_rarely_heard_transmitters_are_left_out(survey: Survey) -> None:
+    refs = ReferenceScans(survey, n_tx=TX_X.size, params=ScanKnnParams(min_heard=10**6))
+    assert not refs.usable.any()
+    assert refs.locate(np.array([0]), np.array([-50.0])) is None
+
+
+def test_maps_carry_their_survey_scans_through_storage(survey: Survey) -> None:
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1))
+    assert m.references is not None and m.references.xy.shape == (survey.n_scans, 2)
+    back = decode_map(encode_map(m))
+    assert back.references is not None
+    for key in ("xy", "walk", "scan", "col", "rssi"):
+        assert np.array_equal(getattr(back.references, key), getattr(m.references, key))
+    # the readings name map columns: the map's transmitters give them back
+    assert np.array_equal(
+        np.sort(back.tx[back.references.col]), np.sort(survey.reading_tx.astype(np.int32))
+    )
+
+
+def test_the_hmm_emission_peaks_where_the_scan_was_made(survey: Survey) -> None:
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1))
+    model = EmissionModel([m], HmmParams())
+    assert model.references is not None
+    rng = np.random.default_rng(5)
+    tx, rssi = _heard(17.0, rng)
+    (ll,) = model.log_likelihoods(tx, rssi)
+    assert ll.shape == (m.n_points,) and np.all(ll <= 0.0)
+    assert abs(m.xy[int(np.argmax(ll)), 0] - 17.0) < 3.0
+    # the restart's k-NN position uses the same survey scans
+    assert abs(model.knn(0, tx, rssi, 4)[0] - 17.0) < 3.0
+    # a scan sharing nothing with the survey is no evidence
+    (flat,) = model.log_likelihoods(np.array([TX_X.size + 3]), np.array([-60.0]))
+    assert np.all(flat == 0.0)
