@@ -12,6 +12,7 @@ from app.core.security import Principal
 from app.ingest import service
 from app.ingest.schemas import IngestBatch, LocatorBatch
 from app.sites.cache import SiteVersions
+from app.workers.device import late_before
 from app.workers.runtime import Outcome, Runtime
 
 
@@ -37,7 +38,13 @@ async def ingest_batch(
     )
     samples = service.batch_samples(batch)
     processed = runtime.last_processed_t(batch.device_id)
-    late = sum(1 for items in samples.values() for s in items if s["t"] <= processed)
+    processed_wifi = runtime.last_processed_wifi_t(batch.device_id)
+    late = sum(
+        1
+        for kind, items in samples.items()
+        for s in items
+        if s["t"] <= late_before(kind, processed, processed_wifi)
+    )
     _, future = runtime.submit(
         site_id=batch.site_id,
         device_id=batch.device_id,

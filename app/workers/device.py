@@ -28,6 +28,25 @@ CHOOSE_WITHIN_MS = 10_000
 """Measurement time a new device's samples may wait for one that can place it."""
 
 
+SCAN_DELIVERY_MS = 4_000
+"""How long before its delivery a WiFi reading may have been heard.
+
+A phone reports a WiFi scan when it completes, with every access point
+timed by when it was heard, up to two seconds earlier on ILC site1's phones
+(a client may send those last-seen times as ``t``); meanwhile its inertial
+samples of those seconds have already gone out and been used. A WiFi
+reading is therefore late only behind the WiFi already used, or this far
+behind everything: dropping the rest as late cut every scan sent with
+per-reading times in two."""
+
+
+def late_before(kind: str, processed_t: int, processed_wifi_t: int = -1) -> int:
+    """Return the time at or before which a sample of ``kind`` arrives too late to be used."""
+    if kind == "wifi":
+        return max(processed_wifi_t, processed_t - SCAN_DELIVERY_MS)
+    return processed_t
+
+
 def _places(batch: Batch) -> bool:
     """Return whether a batch holds samples that say where a device is."""
     return bool(len(batch.rssi) or len(batch.ranges) or len(batch.fixes) or len(batch.sightings))
@@ -57,6 +76,7 @@ class DeviceSession:
         self.engines = engines
         self.tracker: DeviceTracker | None = None
         self.processed_t = -1
+        self.processed_wifi_t = -1
         self.max_t = -1
         self.zones: frozenset[str] = frozenset()
         self.buffer: list[tuple[int, str, Sample]] = []
@@ -84,9 +104,10 @@ class DeviceSession:
         """Buffer a batch received at ``now``; return (accepted, late, duplicate) sample counts."""
         accepted = late = duplicate = 0
         for kind, items in samples.items():
+            too_old = late_before(kind, self.processed_t, self.processed_wifi_t)
             for sample in items:
                 t = sample["t"]
-                if t <= self.processed_t:
+                if t <= too_old:
                     late += 1
                     continue
                 key = _key(kind, sample)
@@ -128,7 +149,11 @@ class DeviceSession:
         if self.tracker is None and not (_places(batch) or waited >= CHOOSE_WITHIN_MS):
             return None, 0
         self.buffer = self.buffer[cut:]
-        self.processed_t = ready[-1][0]
+        # a late WiFi reading may be released behind samples already used
+        self.processed_t = max(self.processed_t, ready[-1][0])
+        wifi_t = [t for t, kind, _ in ready if kind == "wifi"]
+        if wifi_t:
+            self.processed_wifi_t = max(self.processed_wifi_t, max(wifi_t))
         self.seen = {_key(k, s) for _, k, s in self.buffer}
         self.kinds |= set(grouped)
         self.unflushed = True
@@ -218,6 +243,7 @@ class DeviceSession:
         """
         state: dict[str, Any] = {
             "processed_t": self.processed_t,
+            "processed_wifi_t": self.processed_wifi_t,
             "emitted_t": self.emitted_t,
             "smoothed_t": self.smoothed_t,
             "unflushed": self.unflushed,
@@ -238,6 +264,7 @@ class DeviceSession:
                 str(tracker["kind"]), self.engines, self.device_id, tracker["state"]
             )
         self.processed_t = self.snapshot_t = int(state["processed_t"])
+        self.processed_wifi_t = int(state.get("processed_wifi_t", -1))
         self.emitted_t = int(state.get("emitted_t", -1))
         self.smoothed_t = int(state.get("smoothed_t", -1))
         self.unflushed = bool(state.get("unflushed", False))

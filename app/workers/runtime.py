@@ -55,6 +55,7 @@ class Runtime:
         self.sent_at: dict[str, float] = {}
         self.inflight: Counter[str] = Counter()
         self.processed_t: dict[str, int] = {}
+        self.processed_wifi_t: dict[str, int] = {}
         self.worker_counters: dict[int, dict[str, int]] = {}
         self.parked: dict[str, tuple[int, Message]] = {}
         self._ids = itertools.count()
@@ -169,6 +170,10 @@ class Runtime:
         """
         return self.processed_t.get(device_id, -1)
 
+    def last_processed_wifi_t(self, device_id: str) -> int:
+        """Return the newest WiFi reading time the device's worker has used (-1: none)."""
+        return self.processed_wifi_t.get(device_id, -1)
+
     # -- results ----------------------------------------------------------------------
 
     def _from_thread(self, results: list[Message]) -> None:
@@ -204,6 +209,9 @@ class Runtime:
         if "processed_t" in result:
             self.processed_t[device_id] = max(
                 self.processed_t.get(device_id, -1), int(result["processed_t"])
+            )
+            self.processed_wifi_t[device_id] = max(
+                self.processed_wifi_t.get(device_id, -1), int(result.get("processed_wifi_t", -1))
             )
         future = self.waiting.pop(batch_id, None)
         if future is not None and not future.done():

@@ -149,7 +149,12 @@ class Shard:
                     continue
                 positions, events = self._emit(routed, estimates, now)
                 rows.extend(positions)
-                result.update(positions=positions, events=events, processed_t=routed.processed_t)
+                result.update(
+                    positions=positions,
+                    events=events,
+                    processed_t=routed.processed_t,
+                    processed_wifi_t=routed.processed_wifi_t,
+                )
             if rows:
                 db.execute(insert(PositionRecord), [_row(p) for p in rows])
             touched = [d for d, _ in work if d is not None]

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from app.workers import snapshots
-from app.workers.device import DeviceSession
+from app.workers.device import SCAN_DELIVERY_MS, DeviceSession
 from app.workers.trackers import UWB, SiteEngines
 from tests.workers.office import T0, Sample, per_second, uwb_ranges
 
@@ -87,3 +87,26 @@ def test_a_restored_snapshot_resumes_the_device_exactly(engines: SiteEngines) ->
 
     assert any(m["type"] == "zone" and m["zone"] == "Lab" for m in first)
     assert first + rest == uninterrupted
+
+
+def test_wifi_heard_before_inertial_samples_already_used_is_not_late(
+    engines: SiteEngines,
+) -> None:
+    # a phone delivers a scan when it completes, its readings timed when each was heard
+    session = DeviceSession(device_id="phone", engines=engines, now=NOW)
+    imu = [{"t": T0 + 100 * i, "acc": [0.0, 0.0, 9.8]} for i in range(40)]
+    scan = [{"t": T0 + 1000 + 10 * i, "id": f"aa:00:00:00:00:0{i}", "rssi": -60} for i in range(3)]
+    ranges = per_second(uwb_ranges(4))[0]
+    session.add({"imu": imu, "wifi": scan, "uwb": ranges}, now=NOW)
+    session.take(reorder_ms=REORDER_MS, flush=True)
+    assert session.processed_t == T0 + 3900 and session.processed_wifi_t == T0 + 1020
+
+    next_scan = [{"t": T0 + 2500, "id": "aa:00:00:00:00:01", "rssi": -58}]
+    repeat_of_used = [{"t": T0 + 1010, "id": "aa:00:00:00:00:01", "rssi": -61}]
+    old_imu = [{"t": T0 + 3000, "acc": [0.0, 0.0, 9.8]}]
+    counts = session.add({"wifi": next_scan + repeat_of_used, "imu": old_imu}, now=NOW)
+    assert counts == (1, 2, 0)
+
+    # WiFi further behind everything than a scan takes is late all the same
+    stale = [{"t": T0 + 3900 - SCAN_DELIVERY_MS, "id": "aa:00:00:00:00:02", "rssi": -70}]
+    assert session.add({"wifi": stale}, now=NOW) == (0, 1, 0)
