@@ -36,7 +36,7 @@ async def ingest_batch(
         sites=sites,
     )
     samples = service.batch_samples(batch)
-    processed = runtime.last_processed_t(batch.device_id)
+    processed = runtime.last_processed_t((batch.site_id, batch.device_id))
     late = sum(1 for items in samples.values() for s in items if s["t"] <= processed)
     _, future = runtime.submit(
         site_id=batch.site_id,
@@ -74,7 +74,7 @@ async def ingest_locator(
     futures = []
     late = 0
     for tag, sightings in service.sightings_by_tag(batch).items():
-        processed = runtime.last_processed_t(tag)
+        processed = runtime.last_processed_t((batch.site_id, tag))
         late += sum(1 for s in sightings if s["t"] <= processed)
         _, future = runtime.submit(
             site_id=batch.site_id,
