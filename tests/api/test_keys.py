@@ -13,7 +13,8 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from app.core.config import Settings
-from app.core.db import session_scope
+from app.core.db import make_engine, make_sessionmaker, session_scope
+from app.keys.bootstrap import bootstrap_admin
 from app.keys.service import revoke_key
 from app.main import create_app
 from tests.conftest import ADMIN_KEY, migrated
@@ -133,3 +134,19 @@ def test_auth_errors_say_what_is_wrong(
         with client.websocket_connect("/v1/ws/positions", headers=headers) as ws:
             ws.receive_json()
     assert closed.value.code == 1008 and says[:20] in closed.value.reason
+
+
+def test_a_revoked_admin_key_given_by_environment_stops_the_start(
+    new_database: Any, tmp_path: Path
+) -> None:
+    url = migrated(new_database())
+    settings = Settings(database_url=url, home=tmp_path, workers=0, admin_key=ADMIN_KEY)
+    with TestClient(create_app(settings)) as client:
+        admin = _bearer(ADMIN_KEY)
+        second = client.post("/v1/keys", json={"role": "admin"}, headers=admin).json()["key"]
+        bootstrap = client.get("/v1/keys", headers=admin).json()["items"][0]
+        assert client.delete(f"/v1/keys/{bootstrap['id']}", headers=_bearer(second)).is_success
+    engine = make_engine(url)
+    with pytest.raises(ValueError, match="LOCUS_ADMIN_KEY names a revoked key"):
+        bootstrap_admin(sessions=make_sessionmaker(engine), settings=settings)
+    engine.dispose()
