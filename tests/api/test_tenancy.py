@@ -6,9 +6,11 @@ from __future__ import annotations
 import uuid
 from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
 
-from tests.conftest import floor_doc, make_key
+from tests.conftest import ADMIN_KEY, floor_doc, make_key
 
 T0 = 1_700_000_000_000
 DEVICE = "tag-1"
@@ -155,3 +157,19 @@ def test_device_listing_pages_and_says_when_each_was_last_heard(
     assert d2["last_t"] == T0 + 2 + 200 and d2["position"]["t"] == T0 + 2 + 200
     assert d2["last_seen"] >= d2["position"]["computed_at"] - 1000
     assert client.get("/v1/sites/no-such-site/devices", headers=admin).status_code == 404
+
+
+def test_a_stream_filtered_by_device_needs_the_site_and_gets_only_that_device(
+    client: TestClient, admin: dict[str, str]
+) -> None:
+    first, second = _site(client, admin, floor_doc()), _site(client, admin, floor_doc())
+    with pytest.raises(WebSocketDisconnect) as closed:
+        with client.websocket_connect(f"/v1/ws/positions?device_id={DEVICE}&key={ADMIN_KEY}"):
+            pass
+    assert closed.value.code == 1008 and "site_id is required" in closed.value.reason
+    url = f"/v1/ws/positions?site_id={second}&device_id={DEVICE}&key={ADMIN_KEY}"
+    with client.websocket_connect(url) as ws:
+        for site in (first, second):
+            _post(client, admin, site, _walk(T0, 2.0, 2.0, 6))
+        message = ws.receive_json()
+    assert (message["site_id"], message["device_id"]) == (second, DEVICE)
