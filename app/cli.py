@@ -39,8 +39,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings(args)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
-    key = bootstrap_admin(sessions=make_sessionmaker(engine), settings=settings)
-    engine.dispose()
+    try:
+        key = bootstrap_admin(sessions=make_sessionmaker(engine), settings=settings)
+    except ValueError as exc:
+        raise SystemExit(f"locus: {exc}") from None
+    finally:
+        engine.dispose()
     if key is not None:
         announce_admin_key(key)
     uvicorn.run(
@@ -73,7 +77,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     sessions = make_sessionmaker(engine)
-    bootstrap_admin(sessions=sessions, settings=settings)
+    try:
+        bootstrap_admin(sessions=sessions, settings=settings)
+    except ValueError as exc:
+        raise SystemExit(f"locus: {exc}") from None
     admin = settings.admin_key
     if not admin:
         with session_scope(sessions) as db:

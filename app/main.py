@@ -7,13 +7,15 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core.config import Settings, get_settings
 from app.core.errors import install_error_handlers
 from app.core.openapi import install_openapi
+from app.core.query import reject_unknown_query
+from app.devices.router import router as devices_router
 from app.floors.router import router as floors_router
 from app.ingest.router import router as ingest_router
 from app.keys.router import router as keys_router
@@ -76,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="1",
         summary="Real-time indoor location engine for many tags.",
         lifespan=lifespan,
+        dependencies=[Depends(reject_unknown_query)],
     )
     install_error_handlers(app)
     install_openapi(app)
@@ -87,6 +90,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         sites_router,
         floors_router,
         ingest_router,
+        devices_router,
         positions_router,
         surveys_router,
         radiomaps_router,

@@ -1,7 +1,7 @@
 """Every table, imported in one place so metadata and Alembic see them all."""
 
 from app.core.db import Base
-from app.devices.models import DeviceStateRecord
+from app.devices.models import Device, DeviceStateRecord
 from app.floors.models import FloorRecord
 from app.keys.models import ApiKey
 from app.positions.models import PositionRecord
@@ -14,6 +14,7 @@ __all__ = [
     "ApiKey",
     "Base",
     "CalibratedTransmitter",
+    "Device",
     "DeviceStateRecord",
     "FloorRecord",
     "PositionRecord",

@@ -137,18 +137,23 @@ def replay_samples(
         seen.update(p["t"] for p in emitted)
         if on_positions is not None:
             on_positions(emitted)
-    stored = history(http, device_id, t_from=first_t[0])
+    stored = history(http, site_id, device_id, t_from=first_t[0])
     if on_positions is not None:
         on_positions([p for p in stored if p["t"] not in seen])
     return stored
 
 
-def history(http: httpx.Client, device_id: str, *, t_from: int) -> list[dict[str, Any]]:
-    """Return the device's stored positions from ``t_from`` on, following the pages."""
+def history(
+    http: httpx.Client, site_id: str, device_id: str, *, t_from: int
+) -> list[dict[str, Any]]:
+    """Return the site's device's stored positions from ``t_from`` on, following the pages."""
     out: list[dict[str, Any]] = []
     cursor: int | None = t_from
     while cursor is not None:
-        r = http.get(f"/v1/devices/{device_id}/positions", params={"from": cursor, "limit": 10_000})
+        r = http.get(
+            f"/v1/sites/{site_id}/devices/{device_id}/positions",
+            params={"from": cursor, "limit": 10_000},
+        )
         r.raise_for_status()
         page = r.json()
         out += page["items"]

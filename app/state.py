@@ -21,6 +21,7 @@ from app.core.db import make_engine, make_sessionmaker
 from app.core.errors import Unavailable
 from app.core.metrics import Metrics
 from app.keys.cache import KeyCache
+from app.keys.revocation import Revocations
 from app.radiomaps.jobs import RadioMapBuilds
 from app.sites.cache import SiteVersions
 from app.tracks.jobs import TrackFitter
@@ -42,7 +43,9 @@ class AppState:
     runtime: Runtime | None
     track_fits: TrackFitter
     radiomap_builds: RadioMapBuilds
+    revocations: Revocations
     job_leases: asyncio.Task[None] | None = None
+    revocation_poll: asyncio.Task[None] | None = None
 
     @classmethod
     async def open(cls, settings: Settings) -> AppState:
@@ -73,9 +76,11 @@ class AppState:
             runtime=runtime,
             track_fits=track_fits,
             radiomap_builds=RadioMapBuilds(settings, sessions, sites),
+            revocations=Revocations(sessions, keys, settings.key_revocation_poll_s),
         )
         await state.tend_jobs()
         state.job_leases = asyncio.create_task(state._keep_jobs())
+        state.revocation_poll = asyncio.create_task(state.revocations.run())
         return state
 
     async def tend_jobs(self) -> None:
@@ -94,12 +99,13 @@ class AppState:
             await self.tend_jobs()
 
     async def close(self) -> None:
-        """Stop the job leases, the track fits and the workers (they snapshot their devices);
-        close the database."""
-        if self.job_leases is not None:
-            self.job_leases.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self.job_leases
+        """Stop the job leases, the revocation poll, the track fits and the workers (they
+        snapshot their devices); close the database."""
+        for task in (self.job_leases, self.revocation_poll):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
         self.track_fits.stop()
         if self.runtime is not None:
             await self.runtime.stop()

@@ -24,7 +24,7 @@ from app.core.db import make_engine, make_sessionmaker, upgrade_database
 from app.keys.bootstrap import bootstrap_admin
 from app.main import create_app
 
-ADMIN_KEY = "lk_test_admin_key"
+ADMIN_KEY = "lk_t3st-Adm1n-k3y-f0r-the-su1te-Q7x"
 POSTGRES_ENV = "LOCUS_TEST_POSTGRES_URL"
 
 FLOOR_DOC: dict[str, Any] = {

@@ -3,6 +3,8 @@ message naming the setting and what it accepts, never echoing a password."""
 
 from __future__ import annotations
 
+import secrets
+
 import pytest
 
 from app.cli import main
@@ -90,3 +92,34 @@ def test_the_cli_stops_on_a_bad_setting_with_its_name() -> None:
     with pytest.raises(SystemExit) as raised:
         main(["worker", "--broker", "kafka://k:9092"])
     assert "invalid settings" in str(raised.value) and "broker" in str(raised.value)
+
+
+@pytest.mark.parametrize(
+    ("key", "says"),
+    [
+        ("change-me", "9 characters, fewer than 24"),
+        ("lk_test_admin_key", "17 characters, fewer than 24"),
+        ("please-CHANGE-ME-before-production", "the placeholder 'changeme'"),
+        ("my-super-secret-admin-key-2026", "the placeholder 'secret'"),
+        ("0101010101010101010101010101", "only 2 distinct characters"),
+    ],
+)
+def test_a_weak_admin_key_is_refused_saying_how_to_make_one(
+    key: str, says: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with pytest.raises(ValueError) as raised:
+        Settings(admin_key=key)
+    message = str(raised.value)
+    assert "admin_key (LOCUS_ADMIN_KEY) is too weak" in message and says in message
+    assert 'python -c "import secrets; print(secrets.token_urlsafe(32))"' in message
+    assert key not in message, "the refused key is not echoed"
+    monkeypatch.setenv("LOCUS_ADMIN_KEY", key)
+    with pytest.raises(SystemExit) as stopped:
+        main(["serve", "--workers", "0"])
+    assert "too weak" in str(stopped.value) and "secrets.token_urlsafe" in str(stopped.value)
+
+
+def test_a_random_admin_key_is_accepted() -> None:
+    key = secrets.token_urlsafe(32)
+    assert Settings(admin_key=key).admin_key == key
+    assert Settings(admin_key="").admin_key is None, "empty means: generate one"

@@ -15,6 +15,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
+from app.core.security import MAKE_KEY, MIN_ADMIN_KEY_CHARS, weak_key_reason
+
 DATABASE_URL_FORMS = (
     "sqlite:///path/to/locus.db or postgresql+psycopg://user:password@host:5432/db "
     "(empty: an embedded SQLite file under home)"
@@ -43,7 +45,9 @@ class Settings(BaseSettings):
         default="", description=f"SQLAlchemy URL of the database: {DATABASE_URL_FORMS}."
     )
     admin_key: str | None = Field(
-        default=None, description="Bootstrap admin key; generated and printed once when absent."
+        default=None,
+        description="Bootstrap admin key; generated and printed once when absent. A weak one "
+        f"(under {MIN_ADMIN_KEY_CHARS} characters, a placeholder) is refused.",
     )
     host: str = Field(default="127.0.0.1", description="Address the API listens on.")
     port: int = Field(default=8000, ge=0, le=65535, description="Port the API listens on.")
@@ -79,6 +83,23 @@ class Settings(BaseSettings):
     )
     max_samples: int = Field(
         default=10_000, ge=1, le=10_000_000, description="Most samples in one ingest batch."
+    )
+    bulk_max_body_bytes: int = Field(
+        default=8 * MIB,
+        ge=1,
+        le=4096 * MIB,
+        description="Largest bulk ingest body (bytes): eight single bodies; each of its batches "
+        "is also held to max_body_bytes.",
+    )
+    bulk_max_batches: int = Field(
+        default=1000, ge=1, le=1_000_000, description="Most batches in one bulk ingest body."
+    )
+    bulk_max_samples: int = Field(
+        default=100_000,
+        ge=1,
+        le=100_000_000,
+        description="Most samples in one bulk ingest body (ten single batches' worth); each "
+        "batch is also held to max_samples.",
     )
     max_future_ms: int = Field(
         default=DAY_MS,
@@ -129,8 +150,15 @@ class Settings(BaseSettings):
         default=30.0,
         ge=0,
         le=3600,
-        description="A resolved API key is trusted this long without the database: how long a "
-        "deleted key may still work.",
+        description="A resolved API key is trusted this long without the database (a revoked "
+        "key is dropped from it within key_revocation_poll_s).",
+    )
+    key_revocation_poll_s: float = Field(
+        default=0.5,
+        gt=0,
+        le=60,
+        description="Each API node reads the keys revoked lately this often: a revoked key "
+        "stops working on its open WebSockets (and in its key cache) within this.",
     )
     key_cache_size: int = Field(
         default=10_000,
@@ -259,6 +287,19 @@ class Settings(BaseSettings):
     ws_queue_size: int = Field(
         default=1000, ge=1, le=1_000_000, description="Per-subscriber queue before drops."
     )
+
+    @field_validator("admin_key")
+    @classmethod
+    def _check_admin_key(cls, value: str | None) -> str | None:
+        if not value:
+            return None
+        reason = weak_key_reason(value)
+        if reason is not None:
+            raise ValueError(
+                f"admin_key (LOCUS_ADMIN_KEY) is too weak: {reason}. Make a random one with "
+                f"{MAKE_KEY}, or leave it unset and Locus generates one at the first start"
+            )
+        return value
 
     @field_validator("database_url")
     @classmethod

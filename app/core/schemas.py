@@ -9,12 +9,14 @@ from pydantic import BaseModel, StringConstraints
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}$"
 Identifier = Annotated[str, StringConstraints(pattern=ID_PATTERN)]
-DeviceIdentifier = Annotated[
-    str, StringConstraints(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,127}$")
-]
+DEVICE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,127}$"
+DeviceIdentifier = Annotated[str, StringConstraints(pattern=DEVICE_ID_PATTERN)]
 
 SiteIdPath = Annotated[str, Path(pattern=ID_PATTERN, description="Site identifier")]
 FloorIdPath = Annotated[str, Path(pattern=ID_PATTERN, description="Floor identifier")]
+DeviceIdPath = Annotated[
+    str, Path(pattern=DEVICE_ID_PATTERN, description="Device identifier, unique within its site")
+]
 LimitQuery = Annotated[int, Query(ge=1, le=1000)]
 OffsetQuery = Annotated[int, Query(ge=0, le=10**9)]
 

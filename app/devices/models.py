@@ -1,4 +1,7 @@
-"""Device filter snapshots, so a device resumes where it stopped after eviction or a crash."""
+"""Devices of a site and their filter snapshots; a device is known by (site, device id).
+
+The same device id in two sites is two devices: every row here is keyed by both.
+"""
 
 from __future__ import annotations
 
@@ -11,13 +14,26 @@ from app.core.db import Base, UtcDateTime
 from app.core.time import utcnow
 
 
+class Device(Base):
+    """A device that has reported to a site: when it was last heard and up to which time."""
+
+    __tablename__ = "devices"
+
+    site_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    device_id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    last_seen: Mapped[int] = mapped_column(BigInteger)
+    """Wall clock (epoch ms) when the workers last processed a batch of it."""
+    last_t: Mapped[int] = mapped_column(BigInteger)
+    """Newest measurement time (device clock, epoch ms) received from it."""
+
+
 class DeviceStateRecord(Base):
-    """The latest serialised filter state of one device."""
+    """The latest serialised filter state of one device of one site."""
 
     __tablename__ = "device_states"
 
+    site_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     device_id: Mapped[str] = mapped_column(String(128), primary_key=True)
-    site_id: Mapped[str] = mapped_column(String(64))
     t: Mapped[int] = mapped_column(BigInteger)
     snapshot: Mapped[bytes] = mapped_column(LargeBinary)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow, onupdate=utcnow)

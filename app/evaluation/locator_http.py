@@ -93,7 +93,7 @@ def replay_track(
     ).raise_for_status()
     for body in locator_bodies(track, locators, site_id, tag_id):
         http.post("/v1/ingest/locator?wait=true", json=body).raise_for_status()
-    positions = history(http, tag_id, t_from=int(track.t[0]))
+    positions = history(http, site_id, tag_id, t_from=int(track.t[0]))
     t = np.array([p["t"] for p in positions], dtype=float)
     xy = np.array([[p["x"], p["y"]] for p in positions]).reshape(-1, 2)
     return np.hypot(*(xy - truth_at(track, t)).T)

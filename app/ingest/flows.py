@@ -37,8 +37,9 @@ async def ingest_batch(
         sites=sites,
     )
     samples = service.batch_samples(batch)
-    processed = runtime.last_processed_t(batch.device_id)
-    processed_wifi = runtime.last_processed_wifi_t(batch.device_id)
+    key = (batch.site_id, batch.device_id)
+    processed = runtime.last_processed_t(key)
+    processed_wifi = runtime.last_processed_wifi_t(key)
     late = sum(
         1
         for kind, items in samples.items()
@@ -81,7 +82,7 @@ async def ingest_locator(
     futures = []
     late = 0
     for tag, sightings in service.sightings_by_tag(batch).items():
-        processed = runtime.last_processed_t(tag)
+        processed = runtime.last_processed_t((batch.site_id, tag))
         late += sum(1 for s in sightings if s["t"] <= processed)
         _, future = runtime.submit(
             site_id=batch.site_id,

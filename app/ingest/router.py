@@ -1,7 +1,13 @@
-"""Ingest: devices POST (or stream over a WebSocket) batches of measurements."""
+"""Ingest: devices POST (or stream over a WebSocket) batches of measurements; gateways POST
+many devices' batches in one body.
+
+Every way in goes through ``_ingest_one``: one batch validated and submitted, answered as
+the single ingest answers it.
+"""
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import Any, TypeVar
 
@@ -9,12 +15,23 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 
-from app.core.errors import ApiError, DomainError, Invalid, TooLarge, error_body, validation_details
+from app.core.errors import (
+    ApiError,
+    DomainError,
+    Forbidden,
+    Invalid,
+    TooLarge,
+    error_body,
+    validation_details,
+)
 from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
+from app.core.security import Principal
 from app.ingest import flows, service
 from app.ingest.schemas import (
     SAMPLE_MODELS,
+    BulkAnswer,
+    BulkIngest,
     IngestAccepted,
     IngestBatch,
     IngestProcessed,
@@ -22,6 +39,7 @@ from app.ingest.schemas import (
 )
 from app.keys.deps import PrincipalDep, websocket_principal
 from app.state import AppState, RuntimeDep, StateDep, app_state
+from app.workers.runtime import Runtime
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
 M = TypeVar("M", bound=BaseModel)
@@ -75,6 +93,31 @@ def _answer(result: dict[str, Any], wait: bool) -> JSONResponse:
     return JSONResponse(result, status_code=200 if wait else 202)
 
 
+async def _ingest_one(
+    raw: bytes | str, *, principal: Principal, state: AppState, runtime: Runtime, wait: bool
+) -> dict[str, Any]:
+    """Validate one device's batch, check it against the key and the site, submit it; return
+    the single ingest's answer (with ``wait``, after its positions)."""
+    batch, dropped = _parse_batch(raw, state)
+    result = await flows.ingest_batch(
+        batch=batch,
+        principal=principal,
+        settings=state.settings,
+        runtime=runtime,
+        sites=state.sites,
+        wait=wait,
+    )
+    state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
+    return result | dropped
+
+
+def _refusal(exc: ApiError | DomainError) -> dict[str, Any]:
+    """Return a refused batch's result: its status and the contract's error object."""
+    result = {"status": exc.status} | error_body(exc.code, exc.message, exc.details)
+    retry = getattr(exc, "retry_after_s", None)
+    return result if retry is None else result | {"retry_after_s": retry}
+
+
 @router.post(
     "/ingest",
     status_code=202,
@@ -90,17 +133,50 @@ async def ingest(
 ) -> JSONResponse:
     """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
     raw = await _read_body(request, state.settings.max_body_bytes)
-    batch, dropped = _parse_batch(raw, state)
-    result = await flows.ingest_batch(
-        batch=batch,
-        principal=principal,
-        settings=state.settings,
-        runtime=runtime,
-        sites=state.sites,
-        wait=wait,
-    )
-    state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
-    return _answer(result | dropped, wait)
+    result = await _ingest_one(raw, principal=principal, state=state, runtime=runtime, wait=wait)
+    return _answer(result, wait)
+
+
+@router.post(
+    "/ingest/bulk",
+    status_code=202,
+    response_model=BulkAnswer,
+    openapi_extra=json_body(BulkIngest),
+)
+async def ingest_bulk(
+    principal: PrincipalDep,
+    request: Request,
+    state: StateDep,
+    runtime: RuntimeDep,
+    wait: bool = Query(False, description="Answer after processing, with each batch's positions"),
+) -> JSONResponse:
+    """Accept many devices' batches (a gateway's); each is validated and processed on its own.
+
+    The answer lists one result per batch, in order, as the single ingest would answer it:
+    ``{"status": 202|200, "accepted", "late", "dropped"?, "positions"?}`` or ``{"status":
+    4xx, "error"}``. A batch for a site the key may not report to is refused alone (403).
+    The body is refused whole only when its own structure is wrong or it is too large.
+    """
+    if principal.role not in ("admin", "device"):
+        raise Forbidden("only device and admin keys may ingest")
+    raw = await _read_body(request, state.settings.bulk_max_body_bytes)
+    items = service.bulk_items(raw, state.settings)
+
+    async def one(item: Any) -> dict[str, Any]:
+        try:
+            body = json.dumps(item, separators=(",", ":"))
+            if len(body) > state.settings.max_body_bytes:
+                raise TooLarge(f"batch larger than {state.settings.max_body_bytes} bytes")
+            result = await _ingest_one(
+                body, principal=principal, state=state, runtime=runtime, wait=wait
+            )
+        except (ApiError, DomainError) as exc:
+            return _refusal(exc)
+        return {"status": 200 if wait else 202} | result
+
+    # each batch is submitted before the first await, so in the order sent
+    results = await asyncio.gather(*(one(item) for item in items))
+    return _answer({"results": list(results)}, wait)
 
 
 @router.post("/ingest/locator", status_code=202, response_model=IngestAccepted | IngestProcessed)
@@ -132,37 +208,44 @@ async def ingest_locator(
 
 @router.websocket("/ws/ingest")
 async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
-    """Ingest over a socket: each text message is an ingest body, each answer its result."""
-    principal = websocket_principal(websocket)
-    if principal is None:
-        await websocket.close(code=1008, reason="missing or unknown API key")
+    """Ingest over a socket: each text message is an ingest body, each answer its result.
+
+    The socket closes (1008) within a second of its key being revoked.
+    """
+    try:
+        principal = await websocket_principal(websocket)
+    except ApiError as exc:
+        await websocket.close(code=1008, reason=exc.message[:120])
         return
     state = app_state(websocket)
-    if state.runtime is None:
+    runtime = state.runtime
+    if runtime is None:
         await websocket.close(code=1011, reason="this node runs no filter workers")
         return
     await websocket.accept()
+    revoked = state.revocations.watch(principal)
+    ended = asyncio.create_task(revoked.wait())
     try:
         while True:
-            raw = await websocket.receive_text()
+            receiver = asyncio.create_task(websocket.receive_text())
+            await asyncio.wait({receiver, ended}, return_when=asyncio.FIRST_COMPLETED)
+            if not receiver.done():
+                receiver.cancel()
+                await websocket.close(code=1008, reason="this API key was revoked")
+                return
+            raw = receiver.result()
             if len(raw) > state.settings.max_body_bytes:
                 await websocket.send_json(error_body("payload_too_large", "message too large"))
                 continue
             try:
-                batch, dropped = _parse_batch(raw, state)
-                result = await flows.ingest_batch(
-                    batch=batch,
-                    principal=principal,
-                    settings=state.settings,
-                    runtime=state.runtime,
-                    sites=state.sites,
-                    wait=wait,
+                result = await _ingest_one(
+                    raw, principal=principal, state=state, runtime=runtime, wait=wait
                 )
-                state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
-                await websocket.send_text(json.dumps(result | dropped))
+                await websocket.send_text(json.dumps(result))
             except (ApiError, DomainError) as exc:
-                await websocket.send_json(
-                    error_body(exc.code, exc.message, exc.details) | {"status": exc.status}
-                )
+                await websocket.send_json(_refusal(exc))
     except WebSocketDisconnect:
         return
+    finally:
+        state.revocations.unwatch(principal, revoked)
+        ended.cancel()

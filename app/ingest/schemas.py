@@ -6,7 +6,7 @@ whole (422 naming the sample), so nothing is half-accepted.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
 
@@ -153,3 +153,38 @@ class IngestProcessed(IngestAccepted):
     """Answer to ``?wait=true``: every position emitted while processing the batch."""
 
     positions: list[Position]
+
+
+class BulkIngest(BaseModel):
+    """A gateway's body: many devices' batches, each validated and processed on its own."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    batches: Annotated[list[IngestBatch], Field(min_length=1)]
+
+
+class BatchError(BaseModel):
+    """The contract's error object of a refused batch."""
+
+    code: str
+    message: str
+    details: list[Any]
+
+
+class BatchResult(BaseModel):
+    """One batch's result in a bulk answer: what the single ingest would have answered."""
+
+    status: int
+    accepted: int | None = None
+    late: int | None = None
+    dropped: list[DroppedSample] | None = None
+    dropped_total: int | None = None
+    positions: list[Position] | None = None
+    error: BatchError | None = None
+    retry_after_s: float | None = None
+
+
+class BulkAnswer(BaseModel):
+    """Answer to a bulk ingest: one result per batch, in the order sent."""
+
+    results: list[BatchResult]

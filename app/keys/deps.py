@@ -4,35 +4,54 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, Request, WebSocket
+from fastapi import Depends, Request
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import HTTPConnection
 
 from app.core.errors import ApiError, Forbidden
 from app.core.security import Principal
 from app.state import app_state
 
+SEND_KEY = "send 'Authorization: Bearer <key>'"
 
-def bearer_key(authorization: str | None, query_key: str | None = None) -> str | None:
-    """Return the key from ``Authorization: Bearer`` or, for WebSockets, ``?key=``."""
-    if authorization:
-        scheme, _, value = authorization.partition(" ")
-        if scheme.lower() == "bearer" and value.strip():
-            return value.strip()
-    return query_key or None
+
+def _unauthorized(message: str) -> ApiError:
+    return ApiError(401, message, headers={"WWW-Authenticate": "Bearer"})
+
+
+def presented_key(authorization: str | None, query_key: str | None = None) -> str:
+    """Return the key from ``Authorization: Bearer`` or, for WebSockets, ``?key=``; raise a
+    401 saying what is wrong: no key, another scheme, or a scheme without a key."""
+    if authorization is None or not authorization.strip():
+        if query_key:
+            return query_key
+        raise _unauthorized(f"missing API key: {SEND_KEY}")
+    scheme, _, value = authorization.strip().partition(" ")
+    if not value.strip():
+        if scheme.lower() == "bearer":
+            raise _unauthorized(f"the Authorization header has no key after 'Bearer': {SEND_KEY}")
+        raise _unauthorized(f"the Authorization header names no scheme: {SEND_KEY}")
+    if scheme.lower() != "bearer":
+        raise _unauthorized(
+            f"the Authorization header uses the '{scheme[:20]}' scheme, not Bearer: {SEND_KEY}"
+        )
+    return value.strip()
+
+
+async def resolve(connection: HTTPConnection, key: str) -> Principal:
+    """Return the key's principal (cached, else from the database off the loop), or 401."""
+    keys = app_state(connection).keys
+    answer = keys.cached(key)
+    if answer is None:
+        answer = await run_in_threadpool(keys.resolve, key)
+    if isinstance(answer, Principal):
+        return answer
+    raise _unauthorized("this API key was revoked" if answer == "revoked" else "unknown API key")
 
 
 async def authenticate(request: Request) -> Principal:
     """Resolve the caller's key or answer 401 (async: no thread hop on the ingest path)."""
-    key = bearer_key(request.headers.get("authorization"))
-    if key is None:
-        raise ApiError(401, "missing API key", headers={"WWW-Authenticate": "Bearer"})
-    keys = app_state(request).keys
-    cached, principal = keys.cached(key)
-    if not cached:
-        principal = await run_in_threadpool(keys.resolve, key)
-    if principal is None:
-        raise ApiError(401, "unknown API key", headers={"WWW-Authenticate": "Bearer"})
-    return principal
+    return await resolve(request, presented_key(request.headers.get("authorization")))
 
 
 PrincipalDep = Annotated[Principal, Depends(authenticate)]
@@ -58,11 +77,7 @@ async def site_reader(site_id: str, principal: PrincipalDep) -> Principal:
 SiteReaderDep = Annotated[Principal, Depends(site_reader)]
 
 
-def websocket_principal(websocket: WebSocket) -> Principal | None:
-    """Resolve a WebSocket's key from the header or ``?key=``; None if absent or unknown."""
-    key = bearer_key(websocket.headers.get("authorization"), websocket.query_params.get("key"))
-    if key is None:
-        return None
-    keys = app_state(websocket).keys
-    cached, principal = keys.cached(key)
-    return principal if cached else keys.resolve(key)
+async def websocket_principal(connection: HTTPConnection) -> Principal:
+    """Resolve a WebSocket's key from the header or ``?key=``; ApiError(401) saying why not."""
+    key = presented_key(connection.headers.get("authorization"), connection.query_params.get("key"))
+    return await resolve(connection, key)

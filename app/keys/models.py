@@ -22,3 +22,5 @@ class ApiKey(Base):
     site_id: Mapped[str | None] = mapped_column(String(64), index=True)
     label: Mapped[str | None] = mapped_column(String(200))
     created_at: Mapped[datetime] = mapped_column(UtcDateTime(), default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(UtcDateTime(), index=True)
+    """When the key was revoked; a revoked key is refused, its row kept for the listing."""

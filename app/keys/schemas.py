@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from datetime import datetime
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from app.core.security import Role
@@ -37,3 +39,16 @@ class KeyRead(BaseModel):
 
     role: Role
     site_id: str | None
+
+
+class KeyInfo(BaseModel):
+    """A stored key as listed: never the key itself, which only its creator saw."""
+
+    model_config = ConfigDict(from_attributes=True)
+
+    id: int
+    role: Role
+    site_id: str | None
+    label: str | None
+    created_at: datetime
+    revoked_at: datetime | None

@@ -16,7 +16,7 @@ class PositionRecord(Base):
     """
 
     __tablename__ = "positions"
-    __table_args__ = (Index("ix_positions_device_t", "device_id", "t"),)
+    __table_args__ = (Index("ix_positions_site_device_t", "site_id", "device_id", "t"),)
 
     id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
     site_id: Mapped[str] = mapped_column(String(64))

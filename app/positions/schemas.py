@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 
 class Position(BaseModel):
     """A position message (API.md, Positions)."""
+
+    model_config = ConfigDict(from_attributes=True)
 
     type: str = "position"
     device_id: str

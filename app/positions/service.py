@@ -1,6 +1,8 @@
-"""Reading stored positions."""
+"""Reading stored positions of one device of one site."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session
@@ -8,29 +10,58 @@ from sqlalchemy.orm import Session
 from app.positions.models import PositionRecord
 
 
-def latest(*, db: Session, device_id: str) -> PositionRecord | None:
+def latest(*, db: Session, site_id: str, device_id: str) -> PositionRecord | None:
     """Return the device's live position with the greatest measurement time."""
     query = select(PositionRecord).where(
-        PositionRecord.device_id == device_id, PositionRecord.smoothed.is_(False)
+        PositionRecord.site_id == site_id,
+        PositionRecord.device_id == device_id,
+        PositionRecord.smoothed.is_(False),
     )
     return db.scalar(query.order_by(PositionRecord.t.desc(), PositionRecord.id.desc()).limit(1))
 
 
+def latest_of(*, db: Session, site_id: str, device_ids: Sequence[str]) -> dict[str, PositionRecord]:
+    """Return the latest live position of each of the site's ``device_ids`` that has one."""
+    if not device_ids:
+        return {}
+    ranked = (
+        select(
+            PositionRecord.id,
+            func.row_number()
+            .over(
+                partition_by=PositionRecord.device_id,
+                order_by=(PositionRecord.t.desc(), PositionRecord.id.desc()),
+            )
+            .label("rank"),
+        )
+        .where(
+            PositionRecord.site_id == site_id,
+            PositionRecord.device_id.in_(device_ids),
+            PositionRecord.smoothed.is_(False),
+        )
+        .subquery()
+    )
+    query = select(PositionRecord).join(ranked, ranked.c.id == PositionRecord.id)
+    rows = db.scalars(query.where(ranked.c.rank == 1))
+    return {row.device_id: row for row in rows}
+
+
 def history(
-    *, db: Session, device_id: str, t_from: int | None, t_to: int | None, limit: int
+    *, db: Session, site_id: str, device_id: str, t_from: int | None, t_to: int | None, limit: int
 ) -> list[PositionRecord]:
     """Return up to ``limit`` positions with ``t_from <= t <= t_to``, ascending t.
 
     Refined positions are preferred: up to the last refined time the history
     holds the refined positions, after it the live ones (one per time).
     """
+    own = (PositionRecord.site_id == site_id, PositionRecord.device_id == device_id)
     refined_until = (
         select(func.max(PositionRecord.t))
-        .where(PositionRecord.device_id == device_id, PositionRecord.smoothed.is_(True))
+        .where(*own, PositionRecord.smoothed.is_(True))
         .scalar_subquery()
     )
     query = select(PositionRecord).where(
-        PositionRecord.device_id == device_id,
+        *own,
         or_(
             PositionRecord.smoothed.is_(True),
             refined_until.is_(None),
@@ -42,9 +73,3 @@ def history(
     if t_to is not None:
         query = query.where(PositionRecord.t <= t_to)
     return list(db.scalars(query.order_by(PositionRecord.t, PositionRecord.id).limit(limit)))
-
-
-def device_site(*, db: Session, device_id: str) -> str | None:
-    """Return the site the device last reported a position in."""
-    pos = latest(db=db, device_id=device_id)
-    return None if pos is None else pos.site_id

@@ -56,8 +56,11 @@ def get_site(_: SiteReaderDep, site: SiteDep) -> SiteRead:
 
 
 @router.delete("/{site_id}", status_code=204)
-def delete_site(_: AdminDep, site: SiteDep, db: SessionDep) -> Response:
+def delete_site(_: AdminDep, site: SiteDep, db: SessionDep, state: StateDep) -> Response:
     """Delete the site and everything recorded for it."""
+    site_id = site.id
     service.delete_site(db=db, site=site)
     db.commit()
+    # ingest on this node refuses the site at once
+    state.sites.invalidate(site_id)
     return Response(status_code=204)

@@ -16,6 +16,7 @@ from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.jobs import tend_jobs
 from app.core.time import now_ms, utcnow
+from app.devices.service import touch_devices
 from app.positions.models import PositionRecord
 from app.tracks.fitting import run_fit
 from app.tracks.models import Track
@@ -115,4 +116,6 @@ class TrackFitter:
                 "smoothed": False,
             }
             db.execute(insert(PositionRecord), [{k: v for k, v in position.items() if k != "type"}])
+            key = (track.site_id, track.device_id)
+            touch_devices(db=db, heard=[(key, last["t"])], now=position["computed_at"])
             return position

@@ -97,13 +97,14 @@ export class Api {
     );
   }
 
-  /** Return a device's positions in [from, to] (ms), following next_from up to `cap` items. */
-  async history(deviceId, from, to, { pageSize = 1000, cap = 50_000 } = {}) {
+  /** Return a site's device's positions in [from, to] (ms), following next_from up to `cap` items. */
+  async history(siteId, deviceId, from, to, { pageSize = 1000, cap = 50_000 } = {}) {
     const items = [];
     let next = from;
     while (next !== null && next <= to && items.length < cap) {
       const query = new URLSearchParams({ from: next, to, limit: pageSize });
-      const page = await this.request("GET", `/v1/devices/${enc(deviceId)}/positions?${query}`);
+      const path = `/v1/sites/${enc(siteId)}/devices/${enc(deviceId)}/positions`;
+      const page = await this.request("GET", `${path}?${query}`);
       items.push(...page.items);
       next = page.next_from;
     }

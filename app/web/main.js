@@ -122,6 +122,7 @@ class Dashboard {
     this.siteId = siteId;
     $("site").value = siteId ?? "";
     this.live.setSite(siteId);
+    this.replay.setSite(siteId);
     const floors = siteId ? await this.api.floors(siteId) : [];
     if (selection !== this.selection) return;
     $("floor").replaceChildren(

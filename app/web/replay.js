@@ -10,6 +10,7 @@ export class ReplayView {
     this.api = api;
     this.plan = plan;
     this.els = els;
+    this.siteId = null;
     this.floorId = null;
     this.positions = [];
     this.t = null;
@@ -31,6 +32,11 @@ export class ReplayView {
     this.els.to.value = toLocalInput(now);
   }
 
+  /** Devices belong to their site: the history is read from the one shown. */
+  setSite(siteId) {
+    this.siteId = siteId;
+  }
+
   setFloor(floorId) {
     this.floorId = floorId;
     this.#drawPath();
@@ -46,15 +52,15 @@ export class ReplayView {
     const device = this.els.device.value.trim();
     const from = new Date(this.els.from.value).getTime();
     const to = new Date(this.els.to.value).getTime();
-    if (!device || !(from < to)) {
-      this.#status("Pick a device and a time range that ends after it starts.", "error");
+    if (!this.siteId || !device || !(from < to)) {
+      this.#status("Pick a site, a device and a time range that ends after it starts.", "error");
       return;
     }
     this.pause();
     this.#status("Loading…", "loading");
     let answer;
     try {
-      answer = await this.api.history(device, from, to);
+      answer = await this.api.history(this.siteId, device, from, to);
     } catch (error) {
       this.#status(`Could not load the history: ${error.message}`, "error");
       return;

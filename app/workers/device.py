@@ -8,6 +8,7 @@ from typing import Any
 
 from shapely import Point
 
+from app.core.identity import DeviceKey
 from app.engine.samples import Batch, Estimate
 from app.sites.assembly import LoadedSite
 from app.workers.convert import to_batch
@@ -87,6 +88,11 @@ class DeviceSession:
         self.smoothed_t = -1
         self.unflushed = False
         self.kinds: set[str] = set()
+
+    @property
+    def key(self) -> DeviceKey:
+        """Return the device's identity, (site id, device id)."""
+        return (self.engines.site.site_id, self.device_id)
 
     @property
     def site(self) -> LoadedSite:

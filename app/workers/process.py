@@ -49,6 +49,7 @@ def handle_safely(shard: Shard, messages: list[dict[str, Any]]) -> list[dict[str
                 {
                     "type": "done",
                     "batch_id": msg["batch_id"],
+                    "site_id": msg["site_id"],
                     "device_id": msg["device_id"],
                     "error": str(exc),
                 }

@@ -13,6 +13,7 @@ from typing import Any
 
 from app.core.config import Settings
 from app.core.errors import DomainError, Overloaded, ProcessingFailed
+from app.core.identity import DeviceKey
 from app.core.metrics import Metrics
 from app.positions.hub import PositionHub
 from app.workers.broker import Broker, MemoryBroker
@@ -35,7 +36,10 @@ class Outcome:
 
 
 class Runtime:
-    """Owns the broker; routes batches by device, resolves waits, feeds the hub."""
+    """Owns the broker; routes batches by device, resolves waits, feeds the hub.
+
+    Everything it keeps per device is keyed by (site, device).
+    """
 
     def __init__(self, settings: Settings, metrics: Metrics, broker: Broker | None = None) -> None:
         self.settings = settings
@@ -53,11 +57,11 @@ class Runtime:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.waiting: dict[str, asyncio.Future[Outcome]] = {}
         self.sent_at: dict[str, float] = {}
-        self.inflight: Counter[str] = Counter()
-        self.processed_t: dict[str, int] = {}
-        self.processed_wifi_t: dict[str, int] = {}
+        self.inflight: Counter[DeviceKey] = Counter()
+        self.processed_t: dict[DeviceKey, int] = {}
+        self.processed_wifi_t: dict[DeviceKey, int] = {}
         self.worker_counters: dict[int, dict[str, int]] = {}
-        self.parked: dict[str, tuple[int, Message]] = {}
+        self.parked: dict[DeviceKey, tuple[int, Message]] = {}
         self._ids = itertools.count()
         self._prefix = uuid.uuid4().hex[:12]
         self._forwarder: asyncio.Task[None] | None = None
@@ -101,8 +105,9 @@ class Runtime:
 
         Raises Overloaded when the device or its shard is over its bound.
         """
-        shard = shard_of(device_id, self.broker.shards)
-        if self.inflight[device_id] >= self.settings.max_inflight_batches:
+        key = (site_id, device_id)
+        shard = shard_of(key, self.broker.shards)
+        if self.inflight[key] >= self.settings.max_inflight_batches:
             self.metrics.ingest_rejected.labels("device_backlog").inc()
             raise Overloaded(
                 f"device '{device_id}' has too many unprocessed batches", retry_after_s=1
@@ -117,7 +122,7 @@ class Runtime:
             assert self.loop is not None
             future = self.loop.create_future()
             self.waiting[batch_id] = future
-        self.inflight[device_id] += 1
+        self.inflight[key] += 1
         self.sent_at[batch_id] = time.perf_counter()
         message = {
             "type": "ingest",
@@ -130,23 +135,21 @@ class Runtime:
         }
         if overloaded:
             # policy "latest": park the batch; a newer one from the device replaces it
-            superseded = self.parked.pop(device_id, None)
+            superseded = self.parked.pop(key, None)
             if superseded is not None:
                 self._supersede(superseded[1])
-            self.parked[device_id] = (shard, message)
+            self.parked[key] = (shard, message)
         else:
             self.broker.publish(shard, message)
         self.metrics.queue_depth.labels(str(shard)).set(self.broker.backlog(shard))
         return batch_id, future
 
     def _supersede(self, message: Message) -> None:
-        batch_id, device_id = message["batch_id"], message["device_id"]
+        batch_id, key = message["batch_id"], (message["site_id"], message["device_id"])
         dropped = sum(len(items) for items in message["samples"].values())
         self.metrics.dropped_samples.labels("superseded").inc(dropped)
         self.sent_at.pop(batch_id, None)
-        self.inflight[device_id] -= 1
-        if self.inflight[device_id] <= 0:
-            del self.inflight[device_id]
+        self._settle(key)
         future = self.waiting.pop(batch_id, None)
         if future is not None and not future.done():
             reason = Overloaded(
@@ -158,21 +161,25 @@ class Runtime:
         """Publish parked batches as their shards' backlogs fall below the bound."""
         while True:
             await asyncio.sleep(0.1)
-            for device_id, (shard, message) in list(self.parked.items()):
+            for key, (shard, message) in list(self.parked.items()):
                 if self.broker.backlog(shard) < self.settings.shard_backlog:
-                    del self.parked[device_id]
+                    del self.parked[key]
                     self.broker.publish(shard, message)
 
-    def last_processed_t(self, device_id: str) -> int:
-        """Return the newest measurement time the device's worker has processed (-1: none).
+    def last_processed_t(self, key: DeviceKey) -> int:
+        """Return the newest measurement time the worker of the device (site, device) has
+        processed (-1: none). Samples at or before it arrive too late to be used."""
+        return self.processed_t.get(key, -1)
 
-        Samples at or before it arrive too late to be used.
-        """
-        return self.processed_t.get(device_id, -1)
+    def _settle(self, key: DeviceKey) -> None:
+        """Count one of the device's batches as no longer in flight."""
+        self.inflight[key] -= 1
+        if self.inflight[key] <= 0:
+            del self.inflight[key]
 
-    def last_processed_wifi_t(self, device_id: str) -> int:
-        """Return the newest WiFi reading time the device's worker has used (-1: none)."""
-        return self.processed_wifi_t.get(device_id, -1)
+    def last_processed_wifi_t(self, key: DeviceKey) -> int:
+        """Return the newest WiFi reading time the worker of the device has used (-1: none)."""
+        return self.processed_wifi_t.get(key, -1)
 
     # -- results ----------------------------------------------------------------------
 
@@ -198,20 +205,16 @@ class Runtime:
 
     def _done(self, result: Message) -> None:
         batch_id = result["batch_id"]
-        device_id = result["device_id"]
+        key = (result["site_id"], result["device_id"])
         if batch_id in self.sent_at:
             self.metrics.ingest_to_position.observe(
                 time.perf_counter() - self.sent_at.pop(batch_id)
             )
-            self.inflight[device_id] -= 1
-            if self.inflight[device_id] <= 0:
-                del self.inflight[device_id]
+            self._settle(key)
         if "processed_t" in result:
-            self.processed_t[device_id] = max(
-                self.processed_t.get(device_id, -1), int(result["processed_t"])
-            )
-            self.processed_wifi_t[device_id] = max(
-                self.processed_wifi_t.get(device_id, -1), int(result.get("processed_wifi_t", -1))
+            self.processed_t[key] = max(self.processed_t.get(key, -1), int(result["processed_t"]))
+            self.processed_wifi_t[key] = max(
+                self.processed_wifi_t.get(key, -1), int(result.get("processed_wifi_t", -1))
             )
         future = self.waiting.pop(batch_id, None)
         if future is not None and not future.done():

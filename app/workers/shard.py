@@ -19,6 +19,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
 from app.core.db import session_scope
+from app.core.identity import DeviceKey
+from app.devices.service import touch_devices
 from app.engine.samples import Batch, Estimate
 from app.positions.models import PositionRecord
 from app.sites.assembly import assemble_site
@@ -59,7 +61,7 @@ class Shard:
         self.store = snapshots or DatabaseSnapshots()
         # shards of one process share their sites' engines: a mall's rasters are tens of MB
         self.engines: dict[str, SiteEngines] = {} if engines is None else engines
-        self.devices: dict[str, DeviceSession] = {}
+        self.devices: dict[DeviceKey, DeviceSession] = {}
         self.counters: Counter[str] = Counter()
         self.update_seconds = 0.0
         self._scanned_at = 0
@@ -81,32 +83,35 @@ class Shard:
         return engines
 
     def _device(self, db: Session, device_id: str, engines: SiteEngines, now: int) -> DeviceSession:
-        device = self.devices.get(device_id)
-        if device is not None and device.site.site_id == engines.site.site_id:
+        """Return the session of ``device_id`` in the engines' site, resumed from its snapshot
+        when it has none here; a device of the same id in another site is another session."""
+        site_id = engines.site.site_id
+        device = self.devices.get((site_id, device_id))
+        if device is not None:
             if device.engines is not engines:
                 # the map changed: rebuild the filter on the new site from its own state
                 device.use_site(engines)
             return device
-        if device is not None:
-            self._evict(device)
         device = DeviceSession(device_id=device_id, engines=engines, now=now)
-        stored = self.store.load(db, device_id)
-        if stored is not None and stored[0] == engines.site.site_id:
-            device.restore(snapshots.decode(stored[1]))
+        stored = self.store.load(db, device.key)
+        if stored is not None:
+            device.restore(snapshots.decode(stored))
             # Re-delivered batches rebuild the filter from an older snapshot; what was
             # already stored must not be emitted twice.
             last = db.scalar(
-                select(func.max(PositionRecord.t)).where(PositionRecord.device_id == device_id)
+                select(func.max(PositionRecord.t)).where(
+                    PositionRecord.site_id == site_id, PositionRecord.device_id == device_id
+                )
             )
             if last is not None:
                 device.emitted_t = max(device.emitted_t, int(last))
             self.counters["restored"] += 1
-        self.devices[device_id] = device
+        self.devices[device.key] = device
         return device
 
     def _evict(self, device: DeviceSession) -> None:
         device.close()
-        self.devices.pop(device.device_id, None)
+        self.devices.pop(device.key, None)
 
     # -- processing ----------------------------------------------------------------------
 
@@ -121,6 +126,7 @@ class Shard:
                 done: Message = {
                     "type": "done",
                     "batch_id": msg["batch_id"],
+                    "site_id": msg["site_id"],
                     "device_id": msg["device_id"],
                 }
                 engines = self._site(db, msg["site_id"], msg["version"])
@@ -157,7 +163,8 @@ class Shard:
                 )
             if rows:
                 db.execute(insert(PositionRecord), [_row(p) for p in rows])
-            touched = [d for d, _ in work if d is not None]
+            touched = list({d.key: d for d, _ in work if d is not None}.values())
+            touch_devices(db=db, heard=[(d.key, d.max_t) for d in touched], now=now)
             self._save_snapshots(db, touched, force=False)
         self.update_seconds += time.perf_counter() - started
         self.counters["positions"] += len(rows)
@@ -178,15 +185,16 @@ class Shard:
         per round.
         """
         outputs: list[list[Estimate]] = [[] for _ in work]
-        seen: Counter[str] = Counter()
+        seen: Counter[DeviceKey] = Counter()
         rounds: dict[int, list[tuple[int, DeviceTracker, str, Batch]]] = {}
         for i, (device, batch) in enumerate(work):
             if device is None or batch is None or device.tracker is None:
                 continue
-            rounds.setdefault(seen[device.device_id], []).append(
+            # a shared engine is one site's: within it the device id is the device
+            rounds.setdefault(seen[device.key], []).append(
                 (i, device.tracker, device.device_id, batch)
             )
-            seen[device.device_id] += 1
+            seen[device.key] += 1
         for k in sorted(rounds):
             together: dict[int, tuple[BatchEngine, list[tuple[int, str, Batch]]]] = {}
             for i, tracker, device_id, batch in rounds[k]:
@@ -222,6 +230,7 @@ class Shard:
                 results.append(
                     {
                         "type": "emitted",
+                        "site_id": device.site.site_id,
                         "device_id": device.device_id,
                         "positions": positions,
                         "events": events,
@@ -286,13 +295,7 @@ class Shard:
             due = device.processed_t - device.snapshot_t >= self.settings.snapshot_every_ms
             if device.tracker is None or device.processed_t < 0 or not (force or due):
                 continue
-            self.store.save(
-                db,
-                device.device_id,
-                device.site.site_id,
-                device.processed_t,
-                snapshots.encode(device.snapshot()),
-            )
+            self.store.save(db, device.key, device.processed_t, snapshots.encode(device.snapshot()))
             device.snapshot_t = device.processed_t
             self.counters["snapshots"] += 1
 

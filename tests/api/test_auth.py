@@ -111,10 +111,15 @@ def test_positions_are_readable_only_by_their_sites_viewers(
     own = make_key(client, admin, "viewer", site_id)
     client.put(f"/v1/sites/{site_id}-b", json={"name": "b"}, headers=admin)
     stranger = make_key(client, admin, "viewer", f"{site_id}-b")
+    scoped = f"/v1/sites/{site_id}/devices/{site_id}-dev/position"
+    assert client.get(scoped, headers=own).status_code == 200
+    assert client.get(scoped, headers=stranger).status_code == 403
+    assert client.get(scoped + "s", headers=stranger).status_code == 403
+    # the older path reads the key's own site, where no such device is
     path = f"/v1/devices/{site_id}-dev/position"
     assert client.get(path, headers=own).status_code == 200
-    assert client.get(path, headers=stranger).status_code == 403
-    assert client.get(path + "s", headers=stranger).status_code == 403
+    assert client.get(path, headers=stranger).status_code == 404
+    assert client.get(path + f"s?site_id={site_id}", headers=stranger).status_code == 403
 
 
 def test_key_is_returned_once_and_stored_hashed(

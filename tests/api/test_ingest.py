@@ -10,6 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
+from tests.conftest import ADMIN_KEY
+
 T0 = 1_700_000_000_000
 AP = ["aa:00:00:00:00:01", "aa:00:00:00:00:02", "aa:00:00:00:00:03"]
 
@@ -274,7 +276,7 @@ def test_zone_events_on_entering_and_leaving(client: TestClient, admin: dict, si
         {"t": T0 + 200 * k, "x": 10.5 + 0.2 * k, "y": 4.0, "floor_id": "G", "std": 0.1}
         for k in range(40)
     ]
-    url = f"/v1/ws/positions?site_id={site_id}&key=lk_test_admin_key"
+    url = f"/v1/ws/positions?site_id={site_id}&key={ADMIN_KEY}"
     with client.websocket_connect(url) as ws:
         r = client.post(
             "/v1/ingest?wait=true",
@@ -322,7 +324,7 @@ def test_locators_reporting_the_same_moments_are_not_late(
 
 def test_websocket_ingest_answers_each_message(client: TestClient, site_id: str) -> None:
     device = f"{site_id}-ws"
-    with client.websocket_connect("/v1/ws/ingest?wait=true&key=lk_test_admin_key") as ws:
+    with client.websocket_connect(f"/v1/ws/ingest?wait=true&key={ADMIN_KEY}") as ws:
         ws.send_text(json.dumps(batch(site_id, device)))
         answer = ws.receive_json()
         assert answer["accepted"] == 9 and len(answer["positions"]) == 3

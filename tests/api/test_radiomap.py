@@ -22,7 +22,7 @@ from app.importers.ilc import survey_body, walk_samples
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.replay import batches_by_time
 from app.sites.models import Site
-from tests.conftest import make_key
+from tests.conftest import ADMIN_KEY, make_key
 
 SITE1 = data_dir() / "ilc" / "site1"
 FLOOR = "F1"
@@ -39,7 +39,7 @@ def walks() -> list[Path]:
 @pytest.fixture(scope="module")
 def built_site(client: TestClient, walks: list[Path]) -> dict[str, Any]:
     """A site with site1's F1 and 4 of its walks as surveys, built once; its summary."""
-    admin = {"Authorization": "Bearer lk_test_admin_key"}
+    admin = {"Authorization": f"Bearer {ADMIN_KEY}"}
     sid = f"rm-{uuid.uuid4().hex[:8]}"
     assert client.put(f"/v1/sites/{sid}", json={"name": sid}, headers=admin).status_code == 201
     floor = read_floor(SITE1 / FLOOR)
@@ -102,7 +102,7 @@ def test_build_summary_from_site1_walks(client: TestClient, built_site: dict[str
     assert len(stored["maps"]) == 1 and stored["maps"][0][1] == floor["reference_points"]
     assert len(stored["fits"]) == cal["calibrated"]
     assert stored["summary"] == _stable(s)
-    admin = {"Authorization": "Bearer lk_test_admin_key"}
+    admin = {"Authorization": f"Bearer {ADMIN_KEY}"}
     got = client.get(f"/v1/sites/{built_site['site_id']}/radiomap", headers=admin)
     assert got.status_code == 200 and _stable(got.json()) == _stable(s)
 
@@ -111,7 +111,7 @@ def test_build_summary_from_site1_walks(client: TestClient, built_site: dict[str
 def test_async_rebuild_reports_progress_and_stores_the_same_result(
     client: TestClient, built_site: dict[str, Any]
 ) -> None:
-    sid, admin = built_site["site_id"], {"Authorization": "Bearer lk_test_admin_key"}
+    sid, admin = built_site["site_id"], {"Authorization": f"Bearer {ADMIN_KEY}"}
     before = _stored(client, sid)
     r = client.post(f"/v1/sites/{sid}/radiomap/build?async=true", headers=admin)
     assert r.status_code == 202, r.text
@@ -150,7 +150,7 @@ def _replay(
 
 def make_admin() -> dict[str, str]:
     """Headers of the bootstrap admin key."""
-    return {"Authorization": "Bearer lk_test_admin_key"}
+    return {"Authorization": f"Bearer {ADMIN_KEY}"}
 
 
 @needs_site1

@@ -91,7 +91,7 @@ def test_interleaved_messages_reach_their_own_devices(
             [_message(office, walker, "uwb", a), _message(office, other, "uwb", b)]
         )
 
-    assert set(shard.devices) == {walker, other}
+    assert set(shard.devices) == {(SITE_ID, walker), (SITE_ID, other)}
     assert [r["device_id"] for r in results] == [walker, other] * 10
     assert _positions(results, walker) == _alone(engines, walker, "uwb", mine)
     assert _positions(results, other) == _alone(engines, other, "uwb", theirs)
@@ -127,7 +127,7 @@ def test_silence_on_the_shard_clock_flushes_a_device_then_evicts_it(
         results += shard.handle([_message(office, phone, "ble", samples)])
         clock.advance(1.0)
     handled = _positions(results, phone)
-    device = shard.devices[phone]
+    device = shard.devices[(SITE_ID, phone)]
     assert device.buffer, "the newest samples wait in the reorder window"
 
     clock.advance(2.4 - 1.0)  # 2.4 s after the last upload
@@ -146,11 +146,11 @@ def test_silence_on_the_shard_clock_flushes_a_device_then_evicts_it(
     assert phone in pf.devices
     clock.advance(60)  # silent for idle_evict_s
     assert shard.tick() == []
-    assert phone not in shard.devices
+    assert (SITE_ID, phone) not in shard.devices
     assert phone not in pf.devices, "closing the device freed its slot in the shared engine"
     with session_scope(office_sessions) as db:
-        stored = DatabaseSnapshots().load(db, phone)
-    assert stored is not None and stored[0] == SITE_ID
+        stored = DatabaseSnapshots().load(db, (SITE_ID, phone))
+    assert stored is not None, "evicting stored the device's snapshot under its site"
 
 
 def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_go(
@@ -169,9 +169,9 @@ def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_g
     assert phone not in shard.engines[SITE_ID].pf.devices
     with session_scope(office_sessions) as db:
         for device_id, last in ((tag, ranges[-1]["t"]), (phone, scans[-1]["t"])):
-            stored = DatabaseSnapshots().load(db, device_id)
+            stored = DatabaseSnapshots().load(db, (SITE_ID, device_id))
             assert stored is not None
-            state = snapshots.decode(stored[1])
+            state = snapshots.decode(stored)
             assert state["processed_t"] == last
             assert state["buffer"] == "[]" and not state["unflushed"]
 

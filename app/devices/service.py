@@ -1,0 +1,51 @@
+"""The devices of a site: recorded as the workers hear them, listed with their last position."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from sqlalchemy import case, func, select
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.orm import Session
+
+from app.core.identity import DeviceKey
+from app.devices.models import Device
+
+
+def touch_devices(*, db: Session, heard: Sequence[tuple[DeviceKey, int]], now: int) -> None:
+    """Record that the devices ``heard`` ((site, device), newest sample time) sent data at
+    ``now`` (epoch ms): one upsert per round of the workers, not one query per device."""
+    if not heard:
+        return
+    rows = [{"site_id": s, "device_id": d, "last_seen": now, "last_t": t} for (s, d), t in heard]
+    dialect = postgresql if db.get_bind().dialect.name == "postgresql" else sqlite
+    statement = dialect.insert(Device).values(rows)
+    newer = statement.excluded.last_t > Device.last_t
+    db.execute(
+        statement.on_conflict_do_update(
+            index_elements=[Device.site_id, Device.device_id],
+            set_={
+                "last_seen": statement.excluded.last_seen,
+                "last_t": case((newer, statement.excluded.last_t), else_=Device.last_t),
+            },
+        )
+    )
+
+
+def list_devices(*, db: Session, site_id: str, limit: int, offset: int) -> tuple[list[Device], int]:
+    """Return a page of the site's devices (by id) and how many it has."""
+    query = select(Device).where(Device.site_id == site_id)
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db.scalars(query.order_by(Device.device_id).limit(limit).offset(offset)).all()
+    return list(rows), total
+
+
+def get_device(*, db: Session, site_id: str, device_id: str) -> Device | None:
+    """Return the device of the site, or None when the site never heard it."""
+    return db.get(Device, (site_id, device_id))
+
+
+def sites_of(*, db: Session, device_id: str) -> list[str]:
+    """Return the sites that have a device of this id (for the paths that name no site)."""
+    query = select(Device.site_id).where(Device.device_id == device_id).order_by(Device.site_id)
+    return list(db.scalars(query))
