@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.engine.plan import FloorPlan
+from app.engine.trackfit.anchors import AnchorCosts
 from app.engine.trackfit.grid import cell_grid
 from app.engine.trackfit.step import advance
 
@@ -69,6 +70,22 @@ class TrackFitParams:
         free cell; 0 refuses such a start.
     spread_margin : float
         Score margin of the tracks ``TrackFit.spread`` measures (one Φ step).
+    cross_cost, reckon_cost : float
+        Score added for a link placed across a wall (``RELAX_CROSSED``) or by
+        dead reckoning (``RELAX_DEAD_RECKONED``). Within one fit every track
+        takes the same rung, so they change nothing there; they make fits of
+        different rotations comparable: one that walks through walls scores
+        worse than one that does not. Each is the cost of ten maximal Φ
+        changes (2.5 rad of made-up turning).
+    anchor_weight : float
+        Score per nat of an anchor's log-likelihood below its best position
+        (``AnchorCosts``): the tempering of a WiFi scan's likelihood, whose
+        readings are correlated (one scan's ``HmmParams.emission_weight``).
+    anchor_cap : float
+        Largest score (after weighting) one anchor adds: a scan that makes a
+        position very unlikely is as likely an outlier (a reflection, a
+        passer-by) as proof, so it may not outvote the plan alone. Four times
+        the relax penalties' scale.
     time_limit_s : float
         The forward pass gives up (``failed``) after this much computing time (s).
     """
@@ -97,6 +114,10 @@ class TrackFitParams:
     wide_turns: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(-10, 11))
     snap_start: float = 2.0
     spread_margin: float = 0.05
+    cross_cost: float = 2.5
+    reckon_cost: float = 2.5
+    anchor_weight: float = 0.2
+    anchor_cap: float = 10.0
     time_limit_s: float = 10.0
 
 
@@ -215,6 +236,7 @@ def fit_track(
     *,
     heading: float | None = None,
     params: TrackFitParams | None = None,
+    anchors: AnchorCosts | None = None,
     clock: Callable[[], float] = time.perf_counter,
 ) -> TrackFit:
     """Fit a track given as links to the plan, starting at ``start``.
@@ -238,6 +260,9 @@ def fit_track(
         ``first_step`` at no cost, as in the paper.
     params : TrackFitParams, optional
         Γ, Φ, grid, weights, recovery sets and time limit.
+    anchors : AnchorCosts, optional
+        Absolute evidence on some points (WiFi scans): each adds its cost at
+        the candidate end of its point's link to the score of that track.
     clock : callable
         Seconds counter used for the time limit.
 
@@ -337,19 +362,22 @@ def fit_track(
         # Γ and Φ; then the recovery ladder of a dead link, each rung tried only
         # when the one before left no track: Γ_w and Φ_w; walls ignored with
         # the end on free space; pure dead reckoning.
-        ladder = [(RELAX_NONE, normal[i], True, True)]
+        ladder = [(RELAX_NONE, normal[i], True, True, 0.0)]
         if p.recover:
             # γ = 1, φ = 0 (any direction for a first link of unknown heading)
             rel = normal[i].rel if heading is None and i == 0 else turns[i : i + 1]
             phi = normal[i].phi if heading is None and i == 0 else np.zeros(1)
             straight = LinkOptions(np.ones(1), rel, phi, np.zeros((1, rel.size)))
             ladder += [
-                (RELAX_WIDENED, wide[i], True, True),
-                (RELAX_CROSSED, normal[i], True, False),
-                (RELAX_DEAD_RECKONED, straight, False, False),
+                (RELAX_WIDENED, wide[i], True, True, 0.0),
+                (RELAX_CROSSED, normal[i], True, False, p.cross_cost),
+                (RELAX_DEAD_RECKONED, straight, False, False, p.reckon_cost),
             ]
+        end_cost = (
+            None if anchors is None else anchors.for_point(i + 1, p.anchor_weight, p.anchor_cap)
+        )
         for rung in ladder:
-            _, opt, free_end, walls = rung
+            _, opt, free_end, walls, penalty = rung
             cells, xi2, psi2, f2, pred, choice = advance(
                 grid,
                 xi,
@@ -357,9 +385,10 @@ def fit_track(
                 f,
                 opt.scales * lengths[i],
                 opt.rel,
-                opt.cost,
+                opt.cost + penalty,
                 free_end=free_end,
                 walls=walls,
+                end_cost=end_cost,
             )
             if cells.size:
                 break

@@ -8,6 +8,8 @@ wall, and keeps the least-score one per destination cell.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from app.engine.trackfit.grid import NONE, CellGrid, segments_free
@@ -54,6 +56,7 @@ def advance(
     *,
     free_end: bool = True,
     walls: bool = True,
+    end_cost: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Extend every surviving track by one link and keep the best per destination cell.
 
@@ -78,6 +81,9 @@ def advance(
         resort of a dead link) only ends off the raster are dropped.
     walls : bool
         Drop candidates whose move crosses a blocked cell.
+    end_cost : callable, optional
+        Score added to each candidate from its end point (m), shape (M, 2) →
+        (M,): absolute evidence about where the link ends (an anchor).
 
     Returns
     -------
@@ -123,8 +129,10 @@ def advance(
     k, g, a = np.nonzero(ok)
     cell, ux, uy = cell[ok], ux[ok], uy[ok]
 
-    # f_i = f_{i-1}(σ) + C1 |1 - γ| + C2 |φ|
+    # f_i = f_{i-1}(σ) + C1 |1 - γ| + C2 |φ| (+ the anchor's cost at v)
     score = f[k] + cost[g, a]
+    if end_cost is not None:
+        score += end_cost(grid.origin + grid.rcell * (np.column_stack([ux, uy]) - grid.pad))
     # DP cell of v: ⌊(u - pad) rcell / cell⌋
     ratio = grid.rcell / grid.cell
     dest = ((uy - grid.pad) * ratio).astype(np.int64) * grid.nx
