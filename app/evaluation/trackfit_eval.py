@@ -404,12 +404,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--floors", nargs="*", default=None, help="only these floors")
     parser.add_argument("--limit", type=int, default=0, help="at most this many walks")
     parser.add_argument("--time-limit", type=float, default=30.0)
+    parser.add_argument("--screen-weight", type=float, default=TrackSearchParams().screen_weight)
+    parser.add_argument(
+        "--anchor-weight", type=float, default=TrackSearchParams().fit.anchor_weight
+    )
+    parser.add_argument("--anchor-cap", type=float, default=TrackSearchParams().fit.anchor_cap)
     parser.add_argument("--quiet", action="store_true", help="no per-walk lines")
     args = parser.parse_args(argv)
 
     base = TrackSearchParams()
+    fit = replace(
+        base.fit,
+        time_limit_s=args.time_limit,
+        anchor_weight=args.anchor_weight,
+        anchor_cap=args.anchor_cap,
+    )
     params = search_params(
-        args.hypotheses, replace(base, fit=replace(base.fit, time_limit_s=args.time_limit))
+        args.hypotheses, replace(base, fit=fit, screen_weight=args.screen_weight)
     )
     ids = [p.name.split(".")[0] for _, p in site_walks(args.site)]
     train, validation, test = split_ids(ids, args.test_fraction, args.validation_fraction)

@@ -86,7 +86,7 @@ class AnchorCosts:
         def cost(xy: np.ndarray) -> np.ndarray:
             out = np.zeros(len(xy))
             for a in mine:
-                out += self.cost(a, xy, weight, cap)
+                out += self.cost(int(a), xy, weight, cap)
             return out
 
         return cost
