@@ -35,7 +35,7 @@ import numpy as np
 
 from app.engine.plan import FloorPlan
 from app.engine.trackfit.anchors import AnchorCosts
-from app.engine.trackfit.fit import TrackFit, TrackFitParams, fit_track
+from app.engine.trackfit.fit import TrackFit, TrackFitParams, fit_tracks
 
 
 def _degrees(*values: float) -> tuple[float, ...]:
@@ -90,7 +90,7 @@ class TrackSearchParams:
     scales: tuple[float, ...] = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2)
     drifts: tuple[float, ...] = _degrees(-0.3, -0.15, 0.0, 0.15, 0.3)
     walking_speed: float = 1.2
-    spacing: float = 0.5
+    spacing: float = 1.0
     off_cap: float = 3.0
     candidates: int = 4
     distinct: float = 3.0
@@ -163,24 +163,34 @@ def rigid_tracks(
     rotation: np.ndarray,
     scale: np.ndarray,
     turns: np.ndarray,
+    which: np.ndarray | None = None,
 ) -> np.ndarray:
     """Dead-reckon every hypothesis: points (H, n + 1) as complex numbers x + iy.
 
-    ψ_i = θ + Σ_{k ≤ i} turn'_k,  x_i = x_0 + s Σ_{k ≤ i} l_k e^{iψ_k}.
+    ψ_i = θ + Σ_{k ≤ i} turn'_k,  x_i = x_0 + s e^{iθ} Σ_{k ≤ i} l_k e^{i(ψ_k - θ)}: the
+    shape depends only on the turns, so each row of ``turns`` (D, n) is
+    integrated once and hypothesis h takes row ``which[h]`` (default h),
+    rotated and scaled.
     """
-    psi = rotation[:, None] + np.cumsum(turns, axis=1)
-    steps = scale[:, None] * lengths[None, :] * np.exp(1j * psi)
+    shape = np.cumsum(lengths[None, :] * np.exp(1j * np.cumsum(turns, axis=1)), axis=1)
+    shape = np.concatenate([np.zeros((shape.shape[0], 1), complex), shape], axis=1)
+    rows = np.arange(rotation.size) if which is None else which
     z0 = complex(start[0], start[1])
-    return np.concatenate([np.full((psi.shape[0], 1), z0), z0 + np.cumsum(steps, axis=1)], axis=1)
+    return z0 + (scale * np.exp(1j * rotation))[:, None] * shape[rows]
 
 
 def off_plan(plan: FloorPlan, z: np.ndarray, cap: float) -> np.ndarray:
     """Return each point's distance (m) to the nearest free cell, at most ``cap``."""
-    xy = np.stack([z.real, z.imag], axis=-1)
-    row, col, inside = plan.cell_of(xy)
+    ny, nx = plan.shape
+    col = np.floor((z.real - plan.origin[0]) / plan.cell).astype(np.int32)
+    row = np.floor((z.imag - plan.origin[1]) / plan.cell).astype(np.int32)
+    inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+    flat = np.where(inside, row * nx + col, 0)
     # |cell - nearest free cell| in cells, times the cell side
-    d = np.hypot(plan.nearest[0][row, col] - row, plan.nearest[1][row, col] - col) * plan.cell
-    return np.where(inside, np.minimum(d, cap), cap)
+    dr = plan.nearest[0].ravel()[flat] - row
+    dc = plan.nearest[1].ravel()[flat] - col
+    d = np.sqrt((dr * dr + dc * dc).astype(np.float32)) * np.float32(plan.cell)
+    return np.where(inside, np.minimum(d, np.float32(cap)), np.float32(cap))
 
 
 def screen_costs(
@@ -275,7 +285,7 @@ def search_track(
     )
     theta, scale, drift = thetas[ti], scale_set[si], drift_set[di]
     corrected = hypothesis_turns(turns, durations(lengths, times, p.walking_speed), drift_set)
-    tracks = rigid_tracks(start, lengths, theta, scale, corrected[di])
+    tracks = rigid_tracks(start, lengths, theta, scale, corrected, di)
     screen = screen_costs(plan, tracks, lengths, scale, p)
     # ranked by what the final score will hold: screening share plus anchors
     total = p.screen_weight * screen
@@ -290,24 +300,29 @@ def search_track(
         if all(mean_distance(tracks[c], tracks[h : h + 1])[0] > p.distinct for c in chosen):
             chosen.append(int(h))
 
-    fitted: list[Candidate] = []
-    for h in chosen:
-        fit = fit_track(
-            plan,
-            start,
-            scale[h] * lengths,
-            corrected[di[h]],
-            heading=float(theta[h]),
-            params=p.fit,
-            anchors=anchors,
-            clock=clock,
+    picked = np.array(chosen)
+    fits = fit_tracks(
+        plan,
+        start,
+        lengths,
+        corrected[di[picked]],
+        headings=theta[picked],
+        scales=scale[picked],
+        params=p.fit,
+        anchors=anchors,
+        clock=clock,
+    )
+    fitted = [
+        Candidate(
+            float(theta[h]),
+            float(scale[h]),
+            float(drift[h]),
+            float(screen[h]),
+            fit,
+            np.inf if fit.failed else fit.score + p.screen_weight * float(screen[h]),
         )
-        score = np.inf if fit.failed else fit.score + p.screen_weight * float(screen[h])
-        fitted.append(
-            Candidate(
-                float(theta[h]), float(scale[h]), float(drift[h]), float(screen[h]), fit, score
-            )
-        )
+        for h, fit in zip(picked, fits, strict=True)
+    ]
     order = sorted(range(len(fitted)), key=lambda i: (fitted[i].score, i))
     best = fitted[order[0]]
     runner_up = None
