@@ -125,7 +125,7 @@ class TrackFitParams:
     reckon_cost: float = 2.5
     anchor_weight: float = 0.2
     anchor_cap: float = 10.0
-    max_alive: int = 200
+    max_alive: int = 150
     time_limit_s: float = 10.0
 
 
