@@ -92,7 +92,8 @@ class TrackFitParams:
         floors the cells alive grow with the area the track could have
         reached, while the tracks far behind the best are those that bent it
         most: cutting them bounds a link's cost. A 500-step walk on site1's
-        largest floor kept up to 370 per hypothesis without the bound.
+        largest floor (``bench/trackfit.py``) kept up to 1,496 per hypothesis
+        without the bound and took 8.3 s; with 150, 2.2 s at the same error.
     time_limit_s : float
         The forward pass gives up (``failed``) after this much computing time (s).
     """
