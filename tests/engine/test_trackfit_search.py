@@ -13,6 +13,7 @@ import pytest
 from app.engine.plan import FloorPlan, burn_segments
 from app.engine.radiomap import RadioMap
 from app.engine.trackfit.anchors import WifiScan, wifi_anchor_costs
+from app.engine.trackfit.fit import TrackFitParams, fit_track, fit_tracks
 from app.engine.trackfit.search import (
     TrackSearchParams,
     hypothesis_turns,
@@ -95,9 +96,7 @@ def perturbed_links(
     return np.abs(z), np.r_[0.0, np.angle(np.exp(1j * np.diff(direction)))]
 
 
-def test_171_link_office_walk_with_drift_and_scale_is_fitted_within_0_8_m_heading_unknown() -> (
-    None
-):
+def test_171_link_office_walk_with_drift_and_scale_is_fitted_within_0_8_m_heading_unknown() -> None:
     # The paper's case: 171 points, 1 m grid, first heading unknown; here the phone
     # also overestimates steps by 8 % and its gyro drifts 0.2°/s over 100 s (20°).
     rng = np.random.default_rng(171)
@@ -213,3 +212,27 @@ def test_anchors_pick_the_rotation_the_plan_cannot() -> None:
     # the scan matches the cell at 2 < x < 3: the track went east
     assert 2.0 <= found.best.fit.points[-1, 0] < 3.0
     assert found.best.fit.points[-1, 1] < 1.0
+
+
+def test_hypotheses_fitted_together_equal_each_fitted_alone() -> None:
+    # Tracks of different hypotheses never share a cell, and a hypothesis whose
+    # tracks all die climbs its own recovery ladder: the joint pass is H fits
+    # (on one DP cell: together the cell follows the smallest scale's links).
+    params = TrackFitParams(grid=0.5, cell_per_link=0.0)
+    rng = np.random.default_rng(3)
+    truth = resample(ROUTE[:6], 60)
+    lengths, turns = perturbed_links(truth, scale=1.05, drift=0.0, dt=0.6, rng=rng)
+    headings = np.array([0.0, 0.3, np.pi, -1.2])
+    scales = np.array([1.0, 0.9, 1.1, 1.0])
+    hyp_turns = np.stack([turns, turns + 0.01, turns, turns - 0.02])
+    together = fit_tracks(
+        PLAN, truth[0], lengths, hyp_turns, headings=headings, scales=scales, params=params
+    )
+    for h in range(4):
+        alone = fit_track(
+            PLAN, truth[0], lengths * scales[h], hyp_turns[h], heading=headings[h], params=params
+        )
+        assert together[h].failed == alone.failed
+        assert together[h].score == pytest.approx(alone.score)
+        np.testing.assert_allclose(together[h].points, alone.points, atol=1e-9)
+        np.testing.assert_array_equal(together[h].relaxed, alone.relaxed)
