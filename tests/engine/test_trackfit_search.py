@@ -139,8 +139,7 @@ def test_what_the_scale_and_drift_hypotheses_add_on_the_office_walk() -> None:
     )
     err_full = np.hypot(*(full.best.fit.points - truth).T).mean()
     err_bare = np.hypot(*(bare.best.fit.points - truth).T).mean()
-    assert err_full < err_bare
-    assert full.best.drift == pytest.approx(np.radians(0.3), abs=np.radians(0.16))
+    assert err_full < 0.8 < 2.0 < err_bare
 
 
 def test_drift_is_removed_from_the_turns_by_the_time_between_link_middles() -> None:

@@ -80,7 +80,11 @@ class TrackFitParams:
     anchor_weight : float
         Score per nat of an anchor's log-likelihood below its best position
         (``AnchorCosts``): the tempering of a WiFi scan's likelihood, whose
-        readings are correlated (one scan's ``HmmParams.emission_weight``).
+        readings are correlated and whose per-reading model is overconfident.
+        It is the weight under which one held-out scan's posterior covers its
+        surveyed position best (``crossval.emission_log_scores``), which a
+        site1 build put at 0.03: a scan's ℓ spread of a few hundred nats
+        becomes a few score units.
     anchor_cap : float
         Largest score (after weighting) one anchor adds: a scan that makes a
         position very unlikely is as likely an outlier (a reflection, a
@@ -124,7 +128,7 @@ class TrackFitParams:
     spread_margin: float = 0.05
     cross_cost: float = 2.5
     reckon_cost: float = 2.5
-    anchor_weight: float = 0.2
+    anchor_weight: float = 0.03
     anchor_cap: float = 10.0
     max_alive: int = 150
     time_limit_s: float = 10.0

@@ -72,9 +72,21 @@ class TrackSearchParams:
         A screening sample counts its distance (m) to free space up to this.
     candidates : int
         Distinct hypotheses the programme fits.
+    variants : int
+        More hypotheses it fits close to the best screened one (its next
+        scales and drifts): the rigid screening cannot rank a bent track's
+        scale and drift finely, the programme can.
     distinct : float
         Two tracks whose points lie on average more than this apart (m) are
         distinct answers; closer ones are the same answer.
+    scale_links : float
+        A scale hypothesis costs what the programme pays to rescale this many
+        links by Γ: C1 |1 - s| scale_links. Without a prior, hypotheses that
+        explain nothing better than s = 1 would win ties at random.
+    drift_seconds : float
+        A drift hypothesis costs what the programme pays to follow that drift
+        with turn changes for this long (s): C2 |β| drift_seconds. Drift
+        becomes worth hypothesising on walks longer than this.
     screen_weight : float
         Share of a hypothesis' screening cost (m² off the plan) added to its
         fit's score: the fit itself stays on free space whatever the
@@ -93,7 +105,10 @@ class TrackSearchParams:
     spacing: float = 1.0
     off_cap: float = 3.0
     candidates: int = 4
+    variants: int = 2
     distinct: float = 3.0
+    scale_links: float = 10.0
+    drift_seconds: float = 60.0
     screen_weight: float = 0.1
     ambiguity_margin: float = 1.0
 
@@ -111,11 +126,13 @@ class Candidate:
     drift : float
         β (rad/s), the heading drift removed from the turns.
     screen : float
-        Screening cost: m² of the rigid track off the plan (capped per sample).
+        Screening cost: m² of the rigid track off the plan (capped per sample,
+        per metre of the measured track).
     fit : TrackFit
         The programme's fit under the hypothesis.
     score : float
-        fit score + ``screen_weight`` × screen; +inf when the fit failed.
+        fit score + ``screen_weight`` × screen + the scale and drift priors;
+        +inf when the fit failed.
     """
 
     rotation: float
@@ -197,13 +214,13 @@ def screen_costs(
     plan: FloorPlan,
     tracks: np.ndarray,
     lengths: np.ndarray,
-    scale: np.ndarray,
     p: TrackSearchParams,
 ) -> np.ndarray:
     """Return every rigid track's area off the plan (m²), shape (H,).
 
     Each link is sampled every ``spacing`` (at the largest scale) and each
-    sample counts its capped distance to free space times the length it stands for.
+    sample counts its capped distance to free space times the measured length
+    it stands for (so a shrunken track does not look better for being short).
     """
     n = lengths.size
     per_link = np.maximum(1, np.ceil(lengths * max(p.scales) / p.spacing)).astype(np.int64)
@@ -213,8 +230,7 @@ def screen_costs(
     # sample = x_{i-1} + f (x_i - x_{i-1})
     a, b = tracks[:, link], tracks[:, link + 1]
     off = off_plan(plan, a + frac[None, :] * (b - a), p.off_cap)
-    weight = scale[:, None] * (lengths / per_link)[link][None, :]
-    return (off * weight).sum(axis=1)
+    return off @ (lengths / per_link)[link]
 
 
 def mean_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -286,19 +302,27 @@ def search_track(
     theta, scale, drift = thetas[ti], scale_set[si], drift_set[di]
     corrected = hypothesis_turns(turns, durations(lengths, times, p.walking_speed), drift_set)
     tracks = rigid_tracks(start, lengths, theta, scale, corrected, di)
-    screen = screen_costs(plan, tracks, lengths, scale, p)
-    # ranked by what the final score will hold: screening share plus anchors
-    total = p.screen_weight * screen
+    screen = screen_costs(plan, tracks, lengths, p)
+    # C1 |1 - s| N_s + C2 |β| T_β
+    prior = p.fit.c1 * np.abs(1.0 - scale) * p.scale_links
+    prior += p.fit.c2 * np.abs(drift) * p.drift_seconds
+    # ranked by what the final score will hold: screening share, priors, anchors
+    total = p.screen_weight * screen + prior
     if anchors is not None and len(anchors):
         xy = np.stack([tracks.real, tracks.imag], axis=-1)
         total += anchors.total(xy, p.fit.anchor_weight, p.fit.anchor_cap)
 
+    ranked = np.argsort(total, kind="stable")
     chosen: list[int] = []
-    for h in np.argsort(total, kind="stable"):
+    for h in ranked:
         if len(chosen) == p.candidates:
             break
         if all(mean_distance(tracks[c], tracks[h : h + 1])[0] > p.distinct for c in chosen):
             chosen.append(int(h))
+    # the best screened answer's next variants (other scales and drifts of about the
+    # same track): screening ranks them too roughly to pick among them
+    near = ranked[mean_distance(tracks[chosen[0]], tracks[ranked]) <= p.distinct]
+    chosen += [int(h) for h in near if h not in chosen][: p.variants]
 
     picked = np.array(chosen)
     fits = fit_tracks(
@@ -319,7 +343,9 @@ def search_track(
             float(drift[h]),
             float(screen[h]),
             fit,
-            np.inf if fit.failed else fit.score + p.screen_weight * float(screen[h]),
+            np.inf
+            if fit.failed
+            else fit.score + p.screen_weight * float(screen[h]) + float(prior[h]),
         )
         for h, fit in zip(picked, fits, strict=True)
     ]
