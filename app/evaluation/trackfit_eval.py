@@ -340,7 +340,7 @@ def format_summary(results: list[FitResult]) -> str:
     header = (
         f"{'heading':<8} {'anchors':<8} {'walks':>5} {'raw mean':>8} {'raw p50':>7} "
         f"{'raw p95':>7} {'fit mean':>8} {'fit p50':>7} {'fit p95':>7} {'fit/raw':>7} "
-        f"{'failed':>6} {'ambig':>5} {'s med':>6} {'s max':>6}"
+        f"{'failed':>6} {'ambig':>5} {'sure mean':>9} {'s med':>6} {'s max':>6}"
     )
     lines = [header, "-" * len(header)]
     for heading, anchored in SETTINGS:
@@ -350,13 +350,15 @@ def format_summary(results: list[FitResult]) -> str:
         raw = np.concatenate([r.raw for r in rs])
         fit = np.concatenate([r.fitted for r in rs])
         secs = np.array([r.seconds for r in rs])
+        sure = [r.fitted for r in rs if not r.ambiguous]
+        sure_mean = np.concatenate(sure).mean() if sure else np.nan
         lines.append(
             f"{heading:<8} {'every ' + str(int(SCAN_EVERY_S)) + 's' if anchored else 'none':<8} "
             f"{len(rs):>5} {raw.mean():>8.2f} {np.median(raw):>7.2f} "
             f"{np.percentile(raw, 95):>7.2f} {fit.mean():>8.2f} {np.median(fit):>7.2f} "
             f"{np.percentile(fit, 95):>7.2f} {fit.mean() / raw.mean():>7.2f} "
             f"{sum(r.failed is not None for r in rs):>6} {sum(r.ambiguous for r in rs):>5} "
-            f"{np.median(secs):>6.2f} {secs.max():>6.2f}"
+            f"{sure_mean:>9.2f} {np.median(secs):>6.2f} {secs.max():>6.2f}"
         )
     return "\n".join(lines)
 
@@ -475,7 +477,8 @@ def main(argv: list[str] | None = None) -> None:
             )
     print()
     print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
-    print("ambig: fits whose runner-up (a distinct track) scored within the ambiguity margin")
+    print("ambig: fits whose runner-up (a distinct track) scored within the ambiguity margin;")
+    print("sure mean: fitted mean error of the fits not flagged ambiguous")
     print(format_summary(results))
     print()
     print("fitted / raw mean (m) per floor")

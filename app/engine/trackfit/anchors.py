@@ -8,10 +8,13 @@ taken at, the cost
 
     c(x) = min(cap, w (ℓ_max - ℓ_j(x)))
 
-where j(x) is the reference point whose cell holds x and w the tempering of
-one scan's correlated readings; positions with no reference point (nobody
-surveyed there) get the cap. The costs are kept as one raster per scan on the
-radio map's own grid (1 m), so a candidate end costs one gather.
+where j(x) is the reference point nearest to x (its own cell's when it has
+one) and w the tempering of one scan's correlated readings. A position
+nobody surveyed says nothing about the scan, so it takes its nearest
+surveyed neighbour's cost rather than a penalty: a penalty would pull every
+track into the surveyed corridors whatever the scan heard. The costs are kept
+as one raster per scan on the radio map's own grid (1 m), so a candidate end
+costs one gather.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 
 from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.params import HmmParams
@@ -51,7 +55,7 @@ class AnchorCosts:
     cell : float
         Grid cell side (m).
     deficit : ndarray of float32, shape (A, ny, nx)
-        ℓ_max - ℓ(x) per anchor; +inf where no reference point lies.
+        ℓ_max - ℓ(x) per anchor, of the nearest reference point.
     """
 
     point: np.ndarray
@@ -108,14 +112,15 @@ def wifi_anchor_costs(radio_map: RadioMap, scans: Sequence[WifiScan]) -> AnchorC
     """
     model = EmissionModel((radio_map,), replace(HmmParams(), emission_weight=1.0))
     index = radio_map.index_grid()
-    where = index >= 0
-    deficit = np.full((len(scans), *radio_map.shape), np.inf, dtype=np.float32)
+    # every cell's nearest reference point (itself when it is one)
+    _, (row, col) = ndimage.distance_transform_edt(index < 0, return_indices=True)
+    nearest = index[row, col]
+    deficit = np.empty((len(scans), *radio_map.shape), dtype=np.float32)
     for a, scan in enumerate(scans):
         tx, first = np.unique(np.asarray(scan.tx, dtype=np.int64), return_index=True)
         ll = model.log_likelihood(0, tx, np.asarray(scan.rssi, dtype=float)[first])
-        layer = deficit[a]
-        # ℓ_max - ℓ_j at every reference point's cell
-        layer[where] = (ll.max() - ll)[index[where]]
+        # ℓ_max - ℓ_j(x)
+        deficit[a] = (ll.max() - ll)[nearest]
     return AnchorCosts(
         point=np.array([s.point for s in scans], dtype=np.int64),
         origin=np.asarray(radio_map.origin, dtype=float),
