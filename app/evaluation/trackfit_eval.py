@@ -407,6 +407,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--limit", type=int, default=0, help="at most this many walks")
     parser.add_argument("--time-limit", type=float, default=30.0)
     parser.add_argument("--screen-weight", type=float, default=TrackSearchParams().screen_weight)
+    parser.add_argument("--scale-links", type=float, default=TrackSearchParams().scale_links)
+    parser.add_argument("--drift-seconds", type=float, default=TrackSearchParams().drift_seconds)
     parser.add_argument(
         "--anchor-weight", type=float, default=TrackSearchParams().fit.anchor_weight
     )
@@ -422,7 +424,14 @@ def main(argv: list[str] | None = None) -> None:
         anchor_cap=args.anchor_cap,
     )
     params = search_params(
-        args.hypotheses, replace(base, fit=fit, screen_weight=args.screen_weight)
+        args.hypotheses,
+        replace(
+            base,
+            fit=fit,
+            screen_weight=args.screen_weight,
+            scale_links=args.scale_links,
+            drift_seconds=args.drift_seconds,
+        ),
     )
     ids = [p.name.split(".")[0] for _, p in site_walks(args.site)]
     train, validation, test = split_ids(ids, args.test_fraction, args.validation_fraction)
