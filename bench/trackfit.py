@@ -1,13 +1,15 @@
-"""Track-fit benchmark: time of ``fit_track`` by track length and DP grid on a real floor.
+"""Track-fit benchmark: time of ``search_track`` by track length and DP grid on a real floor.
 
 Uses the site1 floor with the largest walkable area, rasterised at the
 service's 0.25 m. Tracks are synthetic: a walker steps along the corridors of
 the plan (straight on, turning where a wall comes up), then the links are
-perturbed as a phone would (per-link length factor and turn noise) and the
-initial heading is withheld. Prints, per track length and grid, the DP cell
-the fitter used (the grid, or less for links shorter than it), the median
-fit time over a few runs, the largest |S_i|, whether the fit completed, and
-the mean distance between fitted and true points.
+perturbed as a phone would (a walker scale, per-link length factor, turn
+noise and a drifting heading) and the initial heading is withheld, so every
+run includes the rotation, scale and drift search. Prints, per track length
+and grid, the DP cell the fitter used (the grid, or less for links shorter
+than it), the hypotheses screened, the median time over a few runs, the
+largest |S_i|, whether the fit completed, and the mean distance between
+fitted and true points.
 
     python bench/trackfit.py --links 50 171 500 --grids 2 1 0.5 --runs 3
 """
@@ -27,7 +29,8 @@ sys.path.insert(0, str(ROOT))
 from app.datasets import data_dir  # noqa: E402
 from app.datasets.ilc import floor_map_geojson  # noqa: E402
 from app.engine.plan import FloorPlan  # noqa: E402
-from app.engine.trackfit.fit import TrackFitParams, fit_track  # noqa: E402
+from app.engine.trackfit.fit import TrackFitParams  # noqa: E402
+from app.engine.trackfit.search import TrackSearchParams, search_track  # noqa: E402
 from app.geometry.floormap import FloorMap, parse_floor_map  # noqa: E402
 from app.geometry.raster import floor_plan  # noqa: E402
 
@@ -103,29 +106,35 @@ def run(args: argparse.Namespace) -> None:
     )
     rng = np.random.default_rng(args.seed)
     header = (
-        f"{'links':>6} {'grid m':>7} {'cell m':>7} {'median s':>9} {'max |S_i|':>10} "
-        f"{'fit':>5} {'err m':>7}"
+        f"{'links':>6} {'grid m':>7} {'cell m':>7} {'screened':>8} {'median s':>9} "
+        f"{'max |S_i|':>10} {'fit':>5} {'err m':>7}"
     )
     print(header)
     print("-" * len(header))
     for n in args.links:
         truth = corridor_walk(plan, n, args.step, rng)
         length, turn, _ = as_links(truth)
-        # Phone-like errors: length off by up to 8 %, turn noise of 2°.
-        raw_len = length * rng.uniform(0.92, 1.08, size=n)
-        raw_turn = turn + rng.normal(0.0, np.radians(2.0), size=n)
+        # Phone-like errors at a step every 0.6 s: the walker's steps 6 % long,
+        # each off by up to 5 %; the heading sways by 2° about a direction
+        # that drifts by 0.1°/s (a gyro bias), so turns carry the sway's changes.
+        dt = 0.6
+        raw_len = 1.06 * length * rng.uniform(0.95, 1.05, size=n)
+        error = np.radians(0.1) * dt * np.arange(n) + rng.normal(0.0, np.radians(2.0), size=n)
+        raw_turn = turn + np.r_[0.0, np.diff(error)]
+        times = dt * np.arange(n + 1)
         for grid in args.grids:
-            params = TrackFitParams(grid=grid, time_limit_s=args.time_limit)
-            times = []
+            params = TrackSearchParams(fit=TrackFitParams(grid=grid, time_limit_s=args.time_limit))
+            seconds = []
             for _ in range(args.runs):
                 t0 = time.perf_counter()
-                fit = fit_track(plan, truth[0], raw_len, raw_turn, params=params)
-                times.append(time.perf_counter() - t0)
+                found = search_track(plan, truth[0], raw_len, raw_turn, times=times, params=params)
+                seconds.append(time.perf_counter() - t0)
+            fit = found.best.fit
             ok = fit.failed is None
             err = np.linalg.norm(fit.points - truth[: fit.points.shape[0]], axis=1).mean()
             print(
-                f"{n:>6} {grid:>7.2f} {fit.cell:>7.2f} {np.median(times):>9.3f} "
-                f"{fit.alive.max():>10} "
+                f"{n:>6} {grid:>7.2f} {fit.cell:>7.2f} {found.screened:>8} "
+                f"{np.median(seconds):>9.3f} {fit.alive.max():>10} "
                 f"{'yes' if ok else 'no':>5} {err:>7.2f}"
             )
 

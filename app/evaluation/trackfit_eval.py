@@ -1,13 +1,20 @@
-"""Measure the track-to-plan fitter (seed 004) on the ILC site1 held-out walks.
+"""Measure the track fitter (seed 004 with the hypothesis search) on ILC site1's held-out walks.
 
 For every test walk (``walk_split`` by walk id) the dead-reckoned track is
 built from the walk's own IMU with the engine's PDR (steps with Weinberg
 length and rotation-vector heading), starting at the first waypoint at its
-time. The fitter then receives what a device in energy-saving mode would
-upload: the start point and the track as links (length, turn), either one
-link per step or steps merged into straight links between turns (Ramer–
-Douglas–Peucker on the raw polyline). The initial heading is withheld, as in
-the paper, or given as the PDR's.
+time; with ``--simulate`` it is instead simulated from the surveyed path with
+a phone's errors (a per-walker step scale, per-step length noise, an initial
+heading offset and a slowly drifting gyro bias), seeded by the walk id. The
+fitter receives what a device in energy-saving mode would upload: the start
+point and the track as links (length, turn), one link per step or steps
+merged into straight links between turns (Ramer–Douglas–Peucker).
+
+Four settings: the first heading withheld (the paper's case) or given, and
+WiFi anchors or none. Anchors are one of the walk's own scans every
+``--scan-every`` seconds, attached to the link end nearest in time, scored
+against radio maps built from the TRAINING walks only (split by walk, never by
+sample).
 
 Positions are compared with the surveyed waypoints at the waypoints' times
 (the first waypoint, the given start, excluded). A fitted link is a scaled
@@ -15,25 +22,29 @@ and rotated copy of its raw chord, so the steps inside a merged link are
 carried along by the same similarity before interpolating in time. A fit that
 fails is scored with the raw track (what a server falls back to) and counted.
 
-Run ``python -m app.evaluation.trackfit_eval [--plots DIR]``.
+Run ``locus eval trackfit [--simulate] [--split validation]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from app.datasets import data_dir
-from app.datasets.ilc import imu_samples, read_floor, read_walk, site_walks
+from app.datasets.ilc import Walk, imu_samples, read_floor, site_walks
 from app.engine.pdr import detect_steps
 from app.engine.plan import FloorPlan
-from app.engine.trackfit.fit import TrackFitParams, fit_track
+from app.engine.radiomap import RadioMap, RadioMapParams
+from app.engine.scans import ScanParams, group_scans
+from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
+from app.engine.trackfit.search import TrackSearchParams, search_track
+from app.evaluation.ilc.learn import radio_maps
+from app.evaluation.ilc.recordings import SiteRecordings, read_site_recordings, survey_of
 from app.evaluation.metrics import truth_at
-from app.evaluation.plots import plan_figure
 from app.evaluation.split import split_ids
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
@@ -45,8 +56,45 @@ MERGE_TOLERANCE_M = 1.0
 """Steps are merged into one link while no step point strays further than
 this from the link's chord (Ramer–Douglas–Peucker)."""
 
-LINK_MODES = ("step", "merged")
-HEADING_MODES = ("unknown", "known")
+SCAN_EVERY_S = 20.0
+"""One WiFi scan kept as an anchor this often: an energy-saving phone's 10–30 s."""
+
+SETTINGS = (("unknown", False), ("unknown", True), ("known", False), ("known", True))
+"""(first heading, WiFi anchors) of every fit of a walk."""
+
+HYPOTHESES = ("full", "no-scale", "no-drift", "rotation-only")
+"""Which motion errors the search hypothesises (``--hypotheses``)."""
+
+
+@dataclass(frozen=True)
+class SimulatedErrors:
+    """A phone's dead-reckoning errors for ``--simulate`` (per walk, drawn from its id's seed).
+
+    Attributes
+    ----------
+    step_m : float
+        Step length (m) the true path is cut into.
+    scale_sd : float
+        Standard deviation of the walker's step-length scale (stride model off for this walker).
+    length_sd : float
+        Standard deviation of each step's relative length error.
+    heading_sd : float
+        Standard deviation (rad) of the initial heading offset.
+    bias_sd : float
+        Standard deviation (rad/s) of the initial gyro bias.
+    bias_walk : float
+        Random-walk density (rad/s per √s) of the bias: it varies slowly.
+    turn_sd : float
+        Standard deviation (rad) of each step's heading noise (sway, not accumulated).
+    """
+
+    step_m: float = 0.7
+    scale_sd: float = 0.08
+    length_sd: float = 0.05
+    heading_sd: float = float(np.radians(5.0))
+    bias_sd: float = float(np.radians(0.2))
+    bias_walk: float = float(np.radians(0.02))
+    turn_sd: float = float(np.radians(3.0))
 
 
 @dataclass(frozen=True)
@@ -59,25 +107,6 @@ class RawTrack:
 
     t: np.ndarray
     xy: np.ndarray
-
-
-@dataclass(frozen=True)
-class WalkResult:
-    """Errors (m) at the waypoints after the first, raw and fitted, of one walk and mode."""
-
-    walk_id: str
-    floor: str
-    links: str
-    heading: str
-    n_links: int
-    raw: np.ndarray
-    fitted: np.ndarray
-    failed: str | None
-    seconds: float
-    relaxed: int = 0
-    """Links placed by the fitter's recovery ladder (no track survived them)."""
-    spread: float = 0.0
-    """How far apart (m) equally good fits end (``TrackFit.spread``)."""
 
 
 def raw_track(
@@ -166,124 +195,199 @@ def position_at(t_points: np.ndarray, xy: np.ndarray, t: np.ndarray) -> np.ndarr
     return np.column_stack([np.interp(t, t_points, xy[:, 0]), np.interp(t, t_points, xy[:, 1])])
 
 
-def fit_walk(
-    plan: FloorPlan, raw: RawTrack, links: str, heading: str, params: TrackFitParams
-) -> tuple[np.ndarray, np.ndarray, str | None, int, float, int, float]:
-    """Fit one raw track: step points, times, failure, links, seconds, relaxed links, spread."""
-    vertex = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
-    lengths, turns, direction = as_links(raw.xy[vertex])
-    t0 = time.perf_counter()
-    # A start on a blocked cell is the fitter's to snap (``snap_start``).
-    fit = fit_track(
-        plan,
-        raw.xy[0],
-        lengths,
-        turns,
-        heading=float(direction[0]) if heading == "known" and lengths.size else None,
-        params=params,
+def simulated_track(waypoints: np.ndarray, errors: SimulatedErrors, seed: int) -> RawTrack:
+    """Dead-reckon the surveyed path with a phone's errors, from its first waypoint.
+
+    The path (straight between waypoints, constant speed) is cut into steps of
+    ``step_m``; each step keeps its true time, and its length and direction
+    get the walker's scale, its own length noise, the heading offset plus the
+    integrated drifting bias, and a little sway.
+    """
+    rng = np.random.default_rng(seed)
+    seg = np.hypot(*np.diff(waypoints[:, 1:], axis=0).T)
+    s_wp = np.r_[0.0, np.cumsum(seg)]
+    s = np.arange(errors.step_m, s_wp[-1], errors.step_m)
+    t = np.interp(s, s_wp, waypoints[:, 0])
+    truth = np.column_stack(
+        [np.interp(s, s_wp, waypoints[:, 1]), np.interp(s, s_wp, waypoints[:, 2])]
     )
-    seconds = time.perf_counter() - t0
-    pts = carry_steps(raw.xy, vertex, fit.points)
-    relaxed = int(np.count_nonzero(fit.relaxed))
-    return pts, raw.t[: len(pts)], fit.failed, int(lengths.size), seconds, relaxed, fit.spread
+    truth = np.vstack([waypoints[0, 1:], truth])
+    t = np.r_[waypoints[0, 0], t]
+    d = np.diff(truth, axis=0)
+    n = d.shape[0]
+    dt = np.diff(t) / 1000.0
+    # β_k = β_0 + Σ w √dt (random walk); heading error e_k = e_0 + Σ β dt + sway
+    bias = rng.normal(0.0, errors.bias_sd) + np.cumsum(
+        rng.normal(0.0, errors.bias_walk, n) * np.sqrt(dt)
+    )
+    err = rng.normal(0.0, errors.heading_sd) + np.cumsum(bias * dt)
+    err += rng.normal(0.0, errors.turn_sd, n)
+    scale = rng.normal(1.0, errors.scale_sd) * (1.0 + rng.normal(0.0, errors.length_sd, n))
+    z = (d[:, 0] + 1j * d[:, 1]) * scale * np.exp(1j * err)
+    xy = np.vstack([truth[0], truth[0] + np.column_stack([z.real, z.imag]).cumsum(axis=0)])
+    return RawTrack(t=t.astype(np.int64), xy=xy)
+
+
+def anchor_scans(
+    site: SiteRecordings, walk: Walk, vertex_t: np.ndarray, every_s: float
+) -> list[WifiScan]:
+    """Return one of the walk's scans every ``every_s``, each at the link end nearest in time.
+
+    The k-th anchor is the first scan completed at least k·every_s after the
+    start (scans before the last link end only).
+    """
+    readings = site.readings(walk)
+    scans = group_scans(readings.t, readings.tx, ScanParams())
+    out: list[WifiScan] = []
+    target = vertex_t[0] + every_s * 1000.0
+    for idx in scans:
+        t_scan = float(readings.t[idx].max())
+        if t_scan > vertex_t[-1]:
+            break
+        if t_scan < target:
+            continue
+        point = int(np.argmin(np.abs(vertex_t - t_scan)))
+        if point > 0:
+            out.append(WifiScan(point, readings.tx[idx], readings.rssi[idx]))
+        target += every_s * 1000.0
+    return out
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Errors (m) at the waypoints after the first, raw and fitted, of one walk and setting."""
+
+    walk_id: str
+    floor: str
+    heading: str
+    anchored: bool
+    n_links: int
+    n_anchors: int
+    raw: np.ndarray
+    fitted: np.ndarray
+    failed: str | None
+    seconds: float
+    ambiguous: bool
+    scale: float
+    drift: float
+
+
+def search_params(hypotheses: str, base: TrackSearchParams) -> TrackSearchParams:
+    """Return ``base`` with the scale or drift hypotheses removed as ``hypotheses`` says."""
+    if hypotheses in ("no-scale", "rotation-only"):
+        base = replace(base, scales=(1.0,))
+    if hypotheses in ("no-drift", "rotation-only"):
+        base = replace(base, drifts=(0.0,))
+    return base
 
 
 def evaluate_walk(
-    walk_id: str,
-    floor: str,
+    walk: Walk,
     plan: FloorPlan,
-    waypoints: np.ndarray,
     raw: RawTrack,
-    params: TrackFitParams,
-) -> tuple[list[WalkResult], dict[tuple[str, str], np.ndarray]]:
-    """Fit one walk in every (links, heading) mode; return results and fitted step points."""
-    t_eval = waypoints[1:, 0]
-    truth, _ = truth_at(waypoints, t_eval)
+    links: str,
+    anchors: AnchorCosts | None,
+    params: TrackSearchParams,
+) -> list[FitResult]:
+    """Fit one raw track in every setting and return the errors at the waypoints."""
+    wp = walk.waypoints
+    t_eval = wp[1:, 0]
+    truth, _ = truth_at(wp, t_eval)
     raw_err = np.linalg.norm(position_at(raw.t, raw.xy, t_eval) - truth, axis=1)
-    results, tracks = [], {}
-    for links in LINK_MODES:
-        for heading in HEADING_MODES:
-            pts, t_pts, failed, n_links, seconds, relaxed, spread = fit_walk(
-                plan, raw, links, heading, params
-            )
-            tracks[(links, heading)] = pts
-            fitted = raw.xy if failed else pts
-            fit_t = raw.t if failed else t_pts
-            err = np.linalg.norm(position_at(fit_t, fitted, t_eval) - truth, axis=1)
-            results.append(
-                WalkResult(
-                    walk_id,
-                    floor,
-                    links,
-                    heading,
-                    n_links,
-                    raw_err,
-                    err,
-                    failed,
-                    seconds,
-                    relaxed,
-                    spread,
-                )
-            )
-    return results, tracks
-
-
-def plot_walk(
-    path: Path,
-    plan: FloorPlan,
-    waypoints: np.ndarray,
-    raw: RawTrack,
-    fitted: np.ndarray,
-    title: str,
-) -> None:
-    """Draw the plan, the true, raw and fitted tracks into a PNG file."""
-    with plan_figure(path, plan, title, width_in=9.0) as ax:
-        ax.plot(
-            waypoints[:, 1], waypoints[:, 2], "o-", color="tab:green", ms=4, lw=2, label="truth"
+    vertex = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
+    lengths, turns, direction = as_links(raw.xy[vertex])
+    times = raw.t[vertex] / 1000.0
+    out = []
+    for heading, anchored in SETTINGS:
+        t0 = time.perf_counter()
+        found = search_track(
+            plan,
+            raw.xy[0],
+            lengths,
+            turns,
+            heading=float(direction[0]) if heading == "known" else None,
+            times=times - times[0],
+            anchors=anchors if anchored else None,
+            params=params,
         )
-        ax.plot(raw.xy[:, 0], raw.xy[:, 1], "-", color="tab:red", lw=1, label="raw PDR")
-        ax.plot(fitted[:, 0], fitted[:, 1], "-", color="tab:blue", lw=1.5, label="fitted")
-        ax.plot(*raw.xy[0], "k*", ms=12)
-        xmin, ymin, xmax, ymax = plan.bounds
-        every = np.vstack([waypoints[:, 1:], raw.xy, fitted])
-        lo, hi = every.min(axis=0) - 10.0, every.max(axis=0) + 10.0
-        ax.set_xlim(max(lo[0], xmin), min(hi[0], xmax))
-        ax.set_ylim(max(lo[1], ymin), min(hi[1], ymax))
+        seconds = time.perf_counter() - t0
+        fit = found.best.fit
+        pts = carry_steps(raw.xy, vertex, fit.points)
+        fitted, fit_t = (raw.xy, raw.t) if fit.failed else (pts, raw.t[: len(pts)])
+        err = np.linalg.norm(position_at(fit_t, fitted, t_eval) - truth, axis=1)
+        out.append(
+            FitResult(
+                walk.walk_id,
+                walk.floor,
+                heading,
+                anchored,
+                int(lengths.size),
+                len(anchors) if anchored and anchors is not None else 0,
+                raw_err,
+                err,
+                fit.failed,
+                seconds,
+                found.ambiguous,
+                found.best.scale,
+                found.best.drift,
+            )
+        )
+    return out
 
 
-def format_summary(results: list[WalkResult]) -> str:
-    """Render per-mode figures over all test walks as a plain-text table."""
+def format_summary(results: list[FitResult]) -> str:
+    """Render raw and fitted mean / p50 / p95 per setting as a plain-text table."""
+    header = (
+        f"{'heading':<8} {'anchors':<8} {'walks':>5} {'raw mean':>8} {'raw p50':>7} "
+        f"{'raw p95':>7} {'fit mean':>8} {'fit p50':>7} {'fit p95':>7} {'fit/raw':>7} "
+        f"{'failed':>6} {'ambig':>5} {'sure mean':>9} {'s med':>6} {'s max':>6}"
+    )
+    lines = [header, "-" * len(header)]
+    for heading, anchored in SETTINGS:
+        rs = [r for r in results if r.heading == heading and r.anchored == anchored]
+        if not rs:
+            continue
+        raw = np.concatenate([r.raw for r in rs])
+        fit = np.concatenate([r.fitted for r in rs])
+        secs = np.array([r.seconds for r in rs])
+        sure = [r.fitted for r in rs if not r.ambiguous]
+        sure_mean = np.concatenate(sure).mean() if sure else np.nan
+        lines.append(
+            f"{heading:<8} {'every ' + str(int(SCAN_EVERY_S)) + 's' if anchored else 'none':<8} "
+            f"{len(rs):>5} {raw.mean():>8.2f} {np.median(raw):>7.2f} "
+            f"{np.percentile(raw, 95):>7.2f} {fit.mean():>8.2f} {np.median(fit):>7.2f} "
+            f"{np.percentile(fit, 95):>7.2f} {fit.mean() / raw.mean():>7.2f} "
+            f"{sum(r.failed is not None for r in rs):>6} {sum(r.ambiguous for r in rs):>5} "
+            f"{sure_mean:>9.2f} {np.median(secs):>6.2f} {secs.max():>6.2f}"
+        )
+    return "\n".join(lines)
+
+
+def per_floor(results: list[FitResult]) -> str:
+    """Render fitted / raw mean per floor and setting (the check on more than one floor)."""
+    floors = sorted({r.floor for r in results})
     lines = [
-        f"{'links':<7} {'heading':<8} {'walks':>5} {'failed':>6} {'raw mean':>9} "
-        f"{'fit mean':>9} {'raw med':>8} {'fit med':>8} {'ok: raw':>8} {'ok: fit':>8} "
-        f"{'walk fit<raw':>12} {'s/fit med':>9} {'s/fit max':>9} {'relaxed':>7} "
-        f"{'spread med':>10}"
+        f"{'floor':<6} {'walks':>5} "
+        + " ".join(f"{h[:3]}+{'wifi' if a else 'none':<4}" for h, a in SETTINGS)
     ]
-    for links in LINK_MODES:
-        for heading in HEADING_MODES:
-            rs = [r for r in results if r.links == links and r.heading == heading]
-            if not rs:
-                continue
+    for floor in floors:
+        cells = []
+        for heading, anchored in SETTINGS:
+            rs = [
+                r
+                for r in results
+                if r.floor == floor and (r.heading, r.anchored) == (heading, anchored)
+            ]
             raw = np.concatenate([r.raw for r in rs])
             fit = np.concatenate([r.fitted for r in rs])
-            ok = [r for r in rs if r.failed is None]
-            ok_raw = np.concatenate([r.raw for r in ok]) if ok else np.zeros(0)
-            ok_fit = np.concatenate([r.fitted for r in ok]) if ok else np.zeros(0)
-            better = sum(r.fitted.mean() < r.raw.mean() for r in rs)
-            secs = np.array([r.seconds for r in rs])
-            relaxed = sum(r.relaxed > 0 for r in rs)
-            lines.append(
-                f"{links:<7} {heading:<8} {len(rs):>5} {len(rs) - len(ok):>6} {raw.mean():>9.2f} "
-                f"{fit.mean():>9.2f} {np.median(raw):>8.2f} {np.median(fit):>8.2f} "
-                f"{ok_raw.mean() if ok else np.nan:>8.2f} {ok_fit.mean() if ok else np.nan:>8.2f} "
-                f"{better:>5}/{len(rs):<6} {np.median(secs):>9.3f} {secs.max():>9.3f} "
-                f"{relaxed:>7} {np.median([r.spread for r in rs]):>10.2f}"
-            )
+            cells.append(f"{fit.mean():>4.1f}/{raw.mean():<4.1f}")
+        n = len({r.walk_id for r in results if r.floor == floor})
+        lines.append(f"{floor:<6} {n:>5} " + " ".join(f"{c:<9}" for c in cells))
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Fit every held-out site1 walk and print per-walk and overall errors."""
+    """Fit every held-out site1 walk in the four settings and print the errors."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--site", type=Path, default=data_dir() / "ilc" / "site1")
     parser.add_argument("--test-fraction", type=float, default=0.2)
@@ -295,82 +399,99 @@ def main(argv: list[str] | None = None) -> None:
         "(for tuning; never tune on test)",
     )
     parser.add_argument("--validation-fraction", type=float, default=0.2)
-    parser.add_argument("--grid", type=float, default=TrackFitParams().grid)
-    parser.add_argument("--cell-per-link", type=float, default=TrackFitParams().cell_per_link)
+    parser.add_argument("--links", choices=("merged", "step"), default="merged")
+    parser.add_argument("--scan-every", type=float, default=SCAN_EVERY_S)
+    parser.add_argument("--hypotheses", choices=HYPOTHESES, default="full")
+    parser.add_argument("--simulate", action="store_true", help="DR simulated from true paths")
+    parser.add_argument("--floors", nargs="*", default=None, help="only these floors")
+    parser.add_argument("--limit", type=int, default=0, help="at most this many walks")
     parser.add_argument("--time-limit", type=float, default=30.0)
-    parser.add_argument("--plots", type=Path, default=None, help="write one PNG per walk here")
+    parser.add_argument("--screen-weight", type=float, default=TrackSearchParams().screen_weight)
+    parser.add_argument("--scale-links", type=float, default=TrackSearchParams().scale_links)
+    parser.add_argument("--drift-seconds", type=float, default=TrackSearchParams().drift_seconds)
+    parser.add_argument(
+        "--anchor-weight", type=float, default=TrackSearchParams().fit.anchor_weight
+    )
+    parser.add_argument("--anchor-cap", type=float, default=TrackSearchParams().fit.anchor_cap)
     parser.add_argument("--quiet", action="store_true", help="no per-walk lines")
     args = parser.parse_args(argv)
 
-    params = TrackFitParams(
-        grid=args.grid,
-        cell_per_link=args.cell_per_link,
+    base = TrackSearchParams()
+    fit = replace(
+        base.fit,
         time_limit_s=args.time_limit,
+        anchor_weight=args.anchor_weight,
+        anchor_cap=args.anchor_cap,
     )
-    walks = site_walks(args.site)
-    _, validation_ids, test_ids = split_ids(
-        [p.name.split(".")[0] for _, p in walks], args.test_fraction, args.validation_fraction
+    params = search_params(
+        args.hypotheses,
+        replace(
+            base,
+            fit=fit,
+            screen_weight=args.screen_weight,
+            scale_links=args.scale_links,
+            drift_seconds=args.drift_seconds,
+        ),
     )
-    test = set(validation_ids if args.split == "validation" else test_ids)
+    ids = [p.name.split(".")[0] for _, p in site_walks(args.site)]
+    train, validation, test = split_ids(ids, args.test_fraction, args.validation_fraction)
+    held = set(validation if args.split == "validation" else test)
+    site = read_site_recordings(args.site, train_ids=train)
+    maps: tuple[RadioMap, ...] = radio_maps(site, survey_of(site, train), RadioMapParams())
     plans: dict[str, FloorPlan] = {}
-    if args.plots:
-        args.plots.mkdir(parents=True, exist_ok=True)
-    results: list[WalkResult] = []
-    print(
-        f"site {args.site.name}: {len(test)} {args.split} walks, grid {args.grid} m, "
-        f"cell per link {args.cell_per_link}, raster "
-        f"{RASTER_CELL_M} m, merge tolerance {MERGE_TOLERANCE_M} m"
+    walks = sorted(
+        (w for w in site.walks if w.walk_id in held and w.waypoints.shape[0] >= 2),
+        key=lambda w: w.walk_id,
     )
-    if not args.quiet:
-        print(
-            f"{'walk':<26} {'floor':<5} {'links':<7} {'heading':<8} {'n':>4} {'raw':>7} "
-            f"{'fitted':>7} {'s':>6} {'relax':>5}  failed"
-        )
-    for floor, path in walks:
-        walk_id = path.name.split(".")[0]
-        if walk_id not in test:
-            continue
-        walk = read_walk(path, floor)
-        if walk.waypoints.shape[0] < 2 or walk.acc.shape[0] == 0:
-            continue
-        if floor not in plans:
-            fmap = parse_floor_map(read_floor(args.site / floor).geojson)
-            plans[floor] = floor_plan(fmap, cell=RASTER_CELL_M)
-        plan = plans[floor]
-        steps = detect_steps(imu_samples(walk))
+    if args.floors:
+        walks = [w for w in walks if w.floor in args.floors]
+    if args.limit:
+        walks = walks[: args.limit]
+    print(
+        f"site {args.site.name}: {len(walks)} {args.split} walks, "
+        f"{'simulated' if args.simulate else 'PDR'} tracks, {args.links} links, hypotheses "
+        f"{args.hypotheses}, radio maps from {len(train)} training walks, one scan every "
+        f"{args.scan_every:g} s, raster {RASTER_CELL_M} m"
+    )
+    results: list[FitResult] = []
+    for walk in walks:
+        if walk.floor not in plans:
+            fmap = parse_floor_map(read_floor(args.site / walk.floor).geojson)
+            plans[walk.floor] = floor_plan(fmap, cell=RASTER_CELL_M)
+        plan = plans[walk.floor]
         wp = walk.waypoints
-        raw = raw_track(wp[[0, -1], 0], steps.t, steps.length, steps.heading, wp[0, 1:])
-        if len(raw.xy) < 2:
+        if args.simulate:
+            raw = simulated_track(wp, SimulatedErrors(), seed=int(walk.walk_id[-8:], 16))
+        else:
+            if walk.acc.shape[0] == 0:
+                continue
+            steps = detect_steps(imu_samples(walk))
+            raw = raw_track(wp[[0, -1], 0], steps.t, steps.length, steps.heading, wp[0, 1:])
+        if len(raw.xy) < 3:
             continue
-        walk_results, tracks = evaluate_walk(walk_id, floor, plan, wp, raw, params)
-        results += walk_results
+        vertex = (
+            np.arange(len(raw.xy)) if args.links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
+        )
+        scans = anchor_scans(site, walk, raw.t[vertex].astype(float), args.scan_every)
+        anchors = wifi_anchor_costs(maps[site.floor_index(walk)], scans) if scans else None
+        found = evaluate_walk(walk, plan, raw, args.links, anchors, params)
+        results += found
         if not args.quiet:
-            for r in walk_results:
-                print(
-                    f"{r.walk_id:<26} {r.floor:<5} {r.links:<7} {r.heading:<8} {r.n_links:>4} "
-                    f"{r.raw.mean():>7.2f} {r.fitted.mean():>7.2f} {r.seconds:>6.2f} "
-                    f"{r.relaxed:>5}  "
-                    f"{r.failed or ''}"
-                )
-        if args.plots:
-            main_fit = next(
-                r for r in walk_results if (r.links, r.heading) == ("merged", "unknown")
-            )
-            plot_walk(
-                args.plots / f"{floor}_{walk_id}.png",
-                plan,
-                wp,
-                raw,
-                tracks[("merged", "unknown")],
-                f"{floor} {walk_id}\nraw {main_fit.raw.mean():.2f} m, fitted (merged links, "
-                f"heading unknown) {main_fit.fitted.mean():.2f} m"
-                + (f" — {main_fit.failed}" if main_fit.failed else ""),
+            print(
+                f"{walk.walk_id:<26} {walk.floor:<3} links {found[0].n_links:>4} anchors "
+                f"{len(scans):>2} raw {found[0].raw.mean():>6.2f} fitted "
+                + " ".join(f"{r.fitted.mean():>6.2f}{'?' if r.ambiguous else ' '}" for r in found)
+                + f"  {max(r.seconds for r in found):.2f}s",
+                flush=True,
             )
     print()
     print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
-    print("relaxed: walks with a link placed by the fitter's recovery ladder; spread: how far")
-    print("apart (m) the fits scoring within one Φ step of the best end (ambiguity)")
+    print("ambig: fits whose runner-up (a distinct track) scored within the ambiguity margin;")
+    print("sure mean: fitted mean error of the fits not flagged ambiguous")
     print(format_summary(results))
+    print()
+    print("fitted / raw mean (m) per floor")
+    print(per_floor(results))
 
 
 if __name__ == "__main__":

@@ -1,50 +1,114 @@
-"""The track fit as it runs in a pool process: floor plan cached per map version."""
+"""The track fit as it runs in a pool process: floor plan and radio map cached per map version."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
+from dataclasses import replace
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
 
 from app.engine.plan import FloorPlan
-from app.engine.trackfit.fit import TrackFitParams, fit_track
+from app.engine.radiomap import RadioMap
+from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
+from app.engine.trackfit.search import Candidate, TrackSearchParams, search_track
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
+from app.radiomaps.codec import decode_map
 
 
 @lru_cache(maxsize=8)
 def _plan(site_id: str, floor_id: str, version: int, doc_json: str, cell: float) -> FloorPlan:
-    import json
-
     return floor_plan(parse_floor_map(json.loads(doc_json)), cell=cell)
 
 
+@lru_cache(maxsize=8)
+def _radio_map(
+    site_id: str, floor_id: str, version: int, data: bytes, transmitters: tuple[str, ...]
+) -> tuple[RadioMap, dict[str, int]]:
+    """Decode a stored map with its columns numbered 0… and the id → column lookup."""
+    m = decode_map(data)
+    return replace(m, tx=np.arange(len(transmitters), dtype=np.int32)), {
+        tx: i for i, tx in enumerate(transmitters)
+    }
+
+
+def _anchors(job: dict[str, Any], segments: list[dict[str, Any]]) -> AnchorCosts | None:
+    """Return the cost rasters of the segments' scans on the floor's radio map, if both exist."""
+    stored = job.get("radiomap")
+    if not stored:
+        return None
+    radio_map, column = _radio_map(
+        job["site_id"],
+        job["floor_id"],
+        job["version"],
+        stored["data"],
+        tuple(stored["transmitters"]),
+    )
+    scans = []
+    for i, segment in enumerate(segments, start=1):
+        known = [r for r in segment.get("wifi") or () if r["id"] in column]
+        if known:
+            tx = np.array([column[r["id"]] for r in known], dtype=np.int64)
+            scans.append(WifiScan(i, tx, np.array([r["rssi"] for r in known], dtype=float)))
+    return wifi_anchor_costs(radio_map, scans) if scans else None
+
+
+def _heading_deg(direction: float) -> float:
+    """Engine direction (rad, CCW from +x) → API heading (degrees clockwise from +y)."""
+    return round((90.0 - math.degrees(direction)) % 360.0, 2)
+
+
+def _candidate(c: Candidate, points: list[dict[str, Any]] | None) -> dict[str, Any]:
+    return {
+        "rotation": _heading_deg(c.rotation),
+        "scale": round(c.scale, 3),
+        "drift": round(math.degrees(c.drift), 3),
+        "score": round(c.score, 4),
+        "points": points,
+    }
+
+
+def _points(times: list[int], xy: np.ndarray) -> list[dict[str, Any]]:
+    return [
+        {"t": int(t), "x": round(float(x), 3), "y": round(float(y), 3)}
+        for t, (x, y) in zip(times, xy, strict=False)
+    ]
+
+
 def run_fit(job: dict[str, Any]) -> dict[str, Any]:
-    """Fit one track; return status, points, score and elapsed time (never raises)."""
+    """Fit one track; return status, points, score, what the fit knows, time (never raises)."""
     started = time.perf_counter()
     try:
         plan = _plan(job["site_id"], job["floor_id"], job["version"], job["floor_doc"], job["cell"])
         request = job["request"]
         segments = request["segments"]
-        defaults = TrackFitParams()
-        params = TrackFitParams(
-            grid=request.get("grid") or defaults.grid,
-            scales=tuple(request.get("scales") or defaults.scales),
-            turns=tuple(request.get("turns") or defaults.turns),
-            time_limit_s=job["time_limit_s"],
+        defaults = TrackSearchParams()
+        params = replace(
+            defaults,
+            fit=replace(
+                defaults.fit,
+                grid=request.get("grid") or defaults.fit.grid,
+                scales=tuple(request.get("scales") or defaults.fit.scales),
+                turns=tuple(request.get("turns") or defaults.fit.turns),
+                time_limit_s=job["time_limit_s"],
+            ),
         )
         heading = request.get("heading")
-        # API heading: degrees clockwise from +y; engine direction: radians CCW from +x
-        direction = None if heading is None else math.radians(90.0 - heading)
-        fit = fit_track(
+        times = np.array([request["t0"], *(s["t"] for s in segments)], dtype=float)
+        anchors = _anchors(job, segments)
+        found = search_track(
             plan,
             np.array([request["start"]["x"], request["start"]["y"]]),
             np.array([s["length"] for s in segments]),
             np.array([s["turn"] for s in segments]),
-            heading=direction,
+            # API heading: degrees clockwise from +y; engine direction: radians CCW from +x
+            heading=None if heading is None else math.radians(90.0 - heading),
+            times=(times - times[0]) / 1000.0,
+            anchors=anchors,
             params=params,
         )
     except Exception as exc:  # a fit that cannot run must still finish as failed
@@ -53,16 +117,25 @@ def run_fit(job: dict[str, Any]) -> dict[str, Any]:
             "error": f"{type(exc).__name__}: {exc}",
             "elapsed_ms": (time.perf_counter() - started) * 1000,
         }
-    times = [request["t0"], *(s["t"] for s in segments)]
-    points = [
-        {"t": int(t), "x": round(float(x), 3), "y": round(float(y), 3)}
-        for t, (x, y) in zip(times, fit.points, strict=False)
-    ]
+    t_points = [request["t0"], *(s["t"] for s in segments)]
+    best, runner_up = found.best, found.runner_up
+    candidates = [_candidate(best, None)]
+    if runner_up is not None:
+        shown = _points(t_points, runner_up.fit.points) if found.ambiguous else None
+        candidates.append(_candidate(runner_up, shown))
     return {
-        "status": "failed" if fit.failed else "done",
-        "error": fit.failed,
-        "points": points,
-        "score": fit.score,
+        "status": "failed" if best.fit.failed else "done",
+        "error": best.fit.failed,
+        "points": _points(t_points, best.fit.points),
+        "score": best.score,
         "elapsed_ms": (time.perf_counter() - started) * 1000,
-        "grid": params.grid,
+        "grid": params.fit.grid,
+        "rotation": _heading_deg(best.rotation),
+        "scale": round(best.scale, 3),
+        "drift": round(math.degrees(best.drift), 3),
+        "relaxed": best.fit.relaxed.astype(int).tolist(),
+        "spread": round(best.fit.spread, 3),
+        "anchors": len(anchors) if anchors is not None else 0,
+        "ambiguous": found.ambiguous,
+        "candidates": candidates,
     }

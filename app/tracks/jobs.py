@@ -21,6 +21,18 @@ from app.positions.models import PositionRecord
 from app.tracks.fitting import run_fit
 from app.tracks.models import Track
 
+FIT_FIELDS = (
+    "rotation",
+    "scale",
+    "drift",
+    "relaxed",
+    "spread",
+    "anchors",
+    "ambiguous",
+    "candidates",
+)
+"""What a fit knows of itself, stored with its points and shown by ``GET /v1/tracks/{id}``."""
+
 Publish = Callable[[list[dict[str, Any]]], None]
 """Hands position messages to the live subscribers."""
 
@@ -92,7 +104,9 @@ class TrackFitter:
             if track is None:
                 return None
             track.status = result["status"]
-            track.result = {"points": result.get("points", [])}
+            track.result = {"points": result.get("points", [])} | {
+                key: result[key] for key in FIT_FIELDS if key in result
+            }
             track.score = result.get("score")
             track.elapsed_ms = result.get("elapsed_ms")
             track.error = result.get("error")

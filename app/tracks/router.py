@@ -10,6 +10,7 @@ from app.core.errors import Forbidden
 from app.keys.deps import PrincipalDep
 from app.state import SessionDep, StateDep
 from app.tracks import service
+from app.tracks.jobs import FIT_FIELDS
 from app.tracks.schemas import FittedPoint, TrackAccepted, TrackCreate, TrackRead, TrackStatus
 
 router = APIRouter(prefix="/v1/tracks", tags=["tracks"])
@@ -34,7 +35,9 @@ def get_track(principal: PrincipalDep, track_id: str, db: SessionDep) -> TrackRe
     track = service.get_track(db=db, track_id=track_id)
     if not (principal.can_read(track.site_id) or principal.can_report(track.site_id)):
         raise Forbidden(f"this key may not read site '{track.site_id}'")
-    points = [FittedPoint(**p) for p in (track.result or {}).get("points", [])]
+    result = track.result or {}
+    points = [FittedPoint(**p) for p in result.get("points", [])]
+    known = {key: result[key] for key in FIT_FIELDS if key in result}
     return TrackRead(
         track_id=track.id,
         device_id=track.device_id,
@@ -45,4 +48,5 @@ def get_track(principal: PrincipalDep, track_id: str, db: SessionDep) -> TrackRe
         score=track.score,
         elapsed_ms=track.elapsed_ms,
         error=track.error,
+        **known,
     )

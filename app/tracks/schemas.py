@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from app.core.schemas import DeviceIdentifier, Identifier
-from app.ingest.schemas import Finite, Time
+from app.ingest.schemas import Finite, Rssi, Time, TxId
 
 Scale = Annotated[float, Field(gt=0.5, lt=2.0, allow_inf_nan=False)]
 TurnChange = Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)]
@@ -27,14 +27,28 @@ class Point(BaseModel):
     y: Finite
 
 
+class ScanReading(BaseModel):
+    """One access point of a WiFi scan: transmitter id (BSSID) and RSSI (dBm)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: TxId
+    rssi: Rssi
+
+
 class Segment(BaseModel):
-    """One link: end time, length (m) and turn from the previous link (rad, CCW positive)."""
+    """One link: end time, length (m) and turn from the previous link (rad, CCW positive).
+
+    ``wifi`` is a scan taken at the link's end, an absolute anchor the fit
+    scores against the floor's radio map (ignored while the site has none).
+    """
 
     model_config = ConfigDict(extra="forbid")
 
     t: Time
     length: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)]
     turn: Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi, allow_inf_nan=False)]
+    wifi: Annotated[list[ScanReading], Field(min_length=1, max_length=500)] | None = None
 
 
 class TrackCreate(BaseModel):
@@ -77,8 +91,25 @@ class FittedPoint(BaseModel):
     y: float
 
 
+class TrackCandidate(BaseModel):
+    """One hypothesis the fit refined: its rotation, scale, drift and score.
+
+    ``points`` are given for the runner-up of an ambiguous fit (the best's
+    are the track's own).
+    """
+
+    rotation: float
+    """Direction of the first link before fitting, degrees clockwise from +y."""
+    scale: float
+    """Step-length scale of the walker applied to every link."""
+    drift: float
+    """Heading drift removed from the turns (degrees per second, CCW positive)."""
+    score: float
+    points: list[FittedPoint] | None = None
+
+
 class TrackRead(BaseModel):
-    """A track's status and, when done, its fitted points."""
+    """A track's status and, when done, its fitted points and what the fit knows of itself."""
 
     track_id: str
     device_id: str
@@ -89,3 +120,19 @@ class TrackRead(BaseModel):
     score: float | None = None
     elapsed_ms: float | None = None
     error: str | None = None
+    rotation: float | None = None
+    """Chosen direction of the first link before fitting, degrees clockwise from +y."""
+    scale: float | None = None
+    """Chosen walker step-length scale."""
+    drift: float | None = None
+    """Chosen heading drift (degrees per second)."""
+    relaxed: list[int] | None = None
+    """Per link: 0 placed normally, 1 with wider changes, 2 across a wall, 3 dead-reckoned."""
+    spread: float | None = None
+    """How far apart (m) the ends of fits scoring as well as the chosen one lie."""
+    anchors: int | None = None
+    """WiFi scans scored against the radio map."""
+    ambiguous: bool | None = None
+    """A distinct fit scored within the ambiguity margin of the chosen one."""
+    candidates: list[TrackCandidate] | None = None
+    """The chosen fit and the runner-up (the best distinct one), with their scores."""

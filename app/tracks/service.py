@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 from app.core.errors import Invalid, NotFound
 from app.floors.service import require_floor
 from app.geometry.floormap import parse_floor_map
+from app.radiomaps.models import RadioMapFloor
 from app.sites.service import require_site
 from app.tracks.models import Track
 from app.tracks.schemas import TrackCreate
@@ -44,8 +45,19 @@ def create_track(*, db: Session, body: TrackCreate) -> tuple[Track, dict[str, An
         "version": site.map_version,
         "floor_doc": json.dumps(floor.geojson),
         "request": request,
+        "radiomap": _radio_map(db=db, body=body),
     }
     return track, job
+
+
+def _radio_map(*, db: Session, body: TrackCreate) -> dict[str, Any] | None:
+    """Return the floor's stored radio map (npz bytes and column ids) when the track has scans."""
+    if not any(s.wifi for s in body.segments):
+        return None
+    row = db.get(RadioMapFloor, (body.site_id, body.floor_id))
+    if row is None:
+        return None
+    return {"data": row.data, "transmitters": list(row.transmitters)}
 
 
 def get_track(*, db: Session, track_id: str) -> Track:

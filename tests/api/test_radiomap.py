@@ -15,9 +15,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from app.datasets import data_dir
-from app.datasets.ilc import read_floor, read_walk, site_walks
+from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_walk, site_walks
 from app.engine.hmm.params import HmmParams
+from app.engine.pdr import detect_steps
 from app.evaluation.metrics import truth_at
+from app.evaluation.trackfit_eval import as_links, raw_track, simplify
 from app.importers.ilc import survey_body, walk_samples
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.replay import batches_by_time
@@ -333,3 +335,61 @@ def test_phones_get_each_position_again_refined_and_history_prefers_the_refined(
     assert all(p["smoothed"] == (p["t"] <= last_refined) for p in items)
     latest = client.get(f"/v1/devices/{device}/position", headers=make_admin()).json()
     assert latest["smoothed"] is False and latest["t"] == max(p["t"] for p in live)
+
+
+def _track_with_scans(walk: Walk, site_id: str, every_ms: int) -> dict[str, Any]:
+    """The walk's PDR track as merged links from its first waypoint, heading given, with one
+    of its own WiFi scans on the segment ending nearest each ``every_ms``."""
+    steps = detect_steps(imu_samples(walk))
+    wp = walk.waypoints
+    raw = raw_track(wp[[0, -1], 0], steps.t, steps.length, steps.heading, wp[0, 1:])
+    vertex = simplify(raw.xy, 1.0)
+    lengths, turns, direction = as_links(raw.xy[vertex])
+    times = raw.t[vertex]
+    segments: list[dict[str, Any]] = [
+        {"t": int(t), "length": float(length), "turn": float(turn)}
+        for t, length, turn in zip(times[1:], lengths, turns, strict=True)
+    ]
+    wifi = fresh_wifi(walk.wifi)
+    scan_times = np.unique(wifi.t)
+    for target in range(int(times[0]) + every_ms, int(times[-1]), every_ms):
+        t_scan = scan_times[np.argmin(np.abs(scan_times - target))]
+        row = wifi.t == t_scan
+        i = int(np.argmin(np.abs(times[1:] - t_scan)))
+        segments[i]["wifi"] = [
+            {"id": str(b), "rssi": float(r)}
+            for b, r in zip(wifi.bssid[row], wifi.rssi[row], strict=True)
+        ]
+    return {
+        "device_id": "saver",
+        "site_id": site_id,
+        "floor_id": FLOOR,
+        "start": {"x": float(wp[0, 1]), "y": float(wp[0, 2])},
+        "t0": int(times[0]),
+        "heading": float((90.0 - np.degrees(direction[0])) % 360.0),
+        "segments": segments,
+    }
+
+
+@needs_site1
+def test_a_tracks_wifi_scans_are_scored_against_the_sites_radio_map(
+    client: TestClient, built_site: dict[str, Any], walks: list[Path]
+) -> None:
+    sid, admin = built_site["site_id"], make_admin()
+    body = _track_with_scans(read_walk(walks[N_SURVEYS], FLOOR), sid, every_ms=20_000)
+    scanned = sum("wifi" in s for s in body["segments"])
+    assert scanned >= 2
+    r = client.post("/v1/tracks", json=body, headers=admin)
+    assert r.status_code == 202, r.text
+    track_id = r.json()["track_id"]
+    deadline = time.monotonic() + 60
+    while (result := client.get(f"/v1/tracks/{track_id}", headers=admin).json())["status"] in (
+        "queued",
+        "running",
+    ):
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    assert result["status"] == "done", result
+    # every scan reached the fit as an anchor on the floor's radio map
+    assert result["anchors"] == scanned
+    assert len(result["points"]) == len(body["segments"]) + 1

@@ -97,3 +97,50 @@ def test_unfittable_track_fails_with_a_reason(
 
 def test_unknown_track_is_404(client: TestClient, admin: dict) -> None:
     assert client.get("/v1/tracks/nope", headers=admin).status_code == 404
+
+
+def test_fit_reports_what_it_chose(client: TestClient, admin: dict, site_id: str) -> None:
+    # Heading given (90°: east): the rotation is that heading; scale and drift are the
+    # hypotheses the fit chose; every link says how it was placed.
+    r = client.post("/v1/tracks", json=_track(site_id), headers=admin)
+    result = _wait_done(client, admin, r.json()["track_id"])
+    assert result["status"] == "done", result
+    assert result["rotation"] == pytest.approx(90.0)
+    assert 0.8 <= result["scale"] <= 1.2
+    assert len(result["relaxed"]) == 14 and set(result["relaxed"]) <= {0, 1, 2, 3}
+    assert result["spread"] >= 0 and result["anchors"] == 0
+    assert isinstance(result["ambiguous"], bool)
+    best = result["candidates"][0]
+    assert best["score"] == pytest.approx(result["score"], abs=1e-3)
+    assert best["rotation"] == result["rotation"] and best["points"] is None
+
+
+def test_withheld_heading_reports_the_runner_up(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    body = _track(site_id)
+    del body["heading"]
+    r = client.post("/v1/tracks", json=body, headers=admin)
+    result = _wait_done(client, admin, r.json()["track_id"])
+    assert result["status"] == "done", result
+    assert 0.0 <= result["rotation"] < 360.0
+    best, *others = result["candidates"]
+    assert best["score"] == pytest.approx(result["score"], abs=1e-3)
+    for other in others:
+        assert other["score"] >= best["score"]
+        # an ambiguous fit shows the runner-up's track too
+        assert (other["points"] is not None) == result["ambiguous"]
+
+
+def test_scans_on_a_site_without_radio_maps_are_accepted_and_not_used(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    body = _track(site_id)
+    body["segments"][5]["wifi"] = [{"id": "aa:bb:cc:dd:ee:01", "rssi": -60}]
+    r = client.post("/v1/tracks", json=body, headers=admin)
+    assert r.status_code == 202, r.text
+    result = _wait_done(client, admin, r.json()["track_id"])
+    assert result["status"] == "done" and result["anchors"] == 0
+    bad = _track(site_id)
+    bad["segments"][0]["wifi"] = [{"id": "aa:bb:cc:dd:ee:01", "rssi": 7}]
+    assert client.post("/v1/tracks", json=bad, headers=admin).status_code == 422

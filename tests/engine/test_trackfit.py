@@ -441,14 +441,15 @@ def test_link_through_a_wall_is_kept_when_nothing_else_fits() -> None:
     # The walker went north from the corridor into the left room at x = 5,
     # where the plan has a wall and no door (a door missing from the map). Every
     # candidate, even with Γ_w and Φ_w, crosses it; the link is placed as
-    # measured and flagged, and the fit continues inside the room.
+    # measured and flagged, and the fit continues inside the room; the crossing
+    # costs its penalty, so a rotation that needs none would score better.
     fit = fit_track(
         PLAN, np.array([5.0, 1.0]), np.array([2.0, 2.0]), np.zeros(2), heading=np.pi / 2
     )
     assert fit.failed is None
     assert fit.relaxed.tolist() == [RELAX_CROSSED, RELAX_NONE]
     np.testing.assert_allclose(fit.points, [[5.0, 1.0], [5.0, 3.0], [5.0, 5.0]], atol=1e-9)
-    assert fit.score == 0.0
+    assert fit.score == TrackFitParams().cross_cost
 
 
 def test_links_ending_inside_a_barrier_are_dead_reckoned_until_free_again() -> None:
@@ -474,7 +475,8 @@ def test_links_ending_inside_a_barrier_are_dead_reckoned_until_free_again() -> N
     ]
     np.testing.assert_allclose(fit.points[:, 0], 1.5 + np.arange(12), atol=1e-9)
     np.testing.assert_allclose(fit.points[:, 1], 2.0, atol=1e-9)
-    assert fit.score == 0.0
+    p = TrackFitParams()
+    assert fit.score == pytest.approx(2 * p.reckon_cost + p.cross_cost)
     off = fit_track(plan, start, np.array([30.0]), np.zeros(1), heading=0.0)
     assert off.failed == "no track survives link 1 of 1"
 

@@ -27,8 +27,19 @@ with a free end, for doors the map lacks; then dead reckoning, for walkers
 where the map says nobody can be) and flagged in ``TrackFit.relaxed``.
 ``recover=False, cell_per_link=0`` is the paper's algorithm.
 
-Modules: ``fit`` (``fit_track``: parameters, the forward pass over the links
-with the recovery ladder, the backward pass and the result), ``step`` (one
-link of the dynamic programme for every surviving track), ``grid`` (the DP
-cells over the plan and the wall test on its raster).
+Beyond the paper, ``search`` resolves what the programme cannot: the
+rotation of a track whose first heading is unknown (a rotated track fits a
+mall's open halls as well as the right one), the walker's step-length scale
+and a drifting gyro heading. Each hypothesis is screened as a rigid track and
+the best distinct ones are fitted together; the best fit and the runner-up
+are reported, flagged ambiguous when their scores are too close. Occasional
+WiFi scans along the track (``anchors``) add their fingerprint cost against
+the floor's radio map to the score of every hypothesis and track.
+
+Modules: ``fit`` (``fit_track`` and ``fit_tracks``: parameters, the forward
+pass over the links with the recovery ladder, the backward pass and the
+result), ``step`` (one link of the dynamic programme for every surviving
+track), ``grid`` (the DP cells over the plan and the wall test on its raster),
+``search`` (the hypotheses, their screening and comparison), ``anchors`` (WiFi
+scans as cost rasters).
 """

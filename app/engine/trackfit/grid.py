@@ -27,6 +27,8 @@ class CellGrid:
     bounds test. ``best``, ``first`` and ``mark`` are per-DP-cell scratch
     arrays of ``advance``, +inf, ``NONE`` and False between calls: resetting
     only the touched cells keeps a link's cost independent of the floor's size.
+    They hold ``groups`` copies of the cells: hypotheses fitted together keep
+    their tracks apart (group g's cell s is slot g · nx · ny + s).
     """
 
     origin: np.ndarray
@@ -57,8 +59,11 @@ MAX_SAMPLES = 1 << 21
 """Largest number of raster samples one wall-test chunk holds in memory."""
 
 
-def cell_grid(plan: FloorPlan, cell: float, reach: float) -> CellGrid:
-    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long."""
+def cell_grid(plan: FloorPlan, cell: float, reach: float, groups: int = 1) -> CellGrid:
+    """Lay DP cells of side ``cell`` (m) over the plan for moves up to ``reach`` (m) long.
+
+    The scratch arrays hold ``groups`` hypotheses fitted together.
+    """
     ny_r, nx_r = plan.shape
     free = plan.free
     border = np.r_[free[0], free[-1], free[:, 0], free[:, -1]]
@@ -85,9 +90,9 @@ def cell_grid(plan: FloorPlan, cell: float, reach: float) -> CellGrid:
         free=np.pad(free, pad, constant_values=False),
         safe=safe,
         safe_end=np.maximum(safe, np.float32(0.0)),
-        best=np.full(nx * ny, np.inf),
-        first=np.full(nx * ny, NONE, dtype=np.int64),
-        mark=np.zeros(nx * ny, dtype=bool),
+        best=np.full(groups * nx * ny, np.inf),
+        first=np.full(groups * nx * ny, NONE, dtype=np.int64),
+        mark=np.zeros(groups * nx * ny, dtype=bool),
     )
 
 

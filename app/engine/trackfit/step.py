@@ -8,6 +8,8 @@ wall, and keeps the least-score one per destination cell.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from app.engine.trackfit.grid import NONE, CellGrid, segments_free
@@ -54,6 +56,10 @@ def advance(
     *,
     free_end: bool = True,
     walls: bool = True,
+    end_cost: Callable[[np.ndarray], np.ndarray] | None = None,
+    group: np.ndarray | None = None,
+    link_scale: np.ndarray | None = None,
+    link_turn: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Extend every surviving track by one link and keep the best per destination cell.
 
@@ -78,6 +84,16 @@ def advance(
         resort of a dead link) only ends off the raster are dropped.
     walls : bool
         Drop candidates whose move crosses a blocked cell.
+    end_cost : callable, optional
+        Score added to each candidate from its end point (m), shape (M, 2) →
+        (M,): absolute evidence about where the link ends (an anchor).
+    group : ndarray of int, shape (K,), optional
+        Hypothesis of each track (default all 0): tracks of different groups
+        never compete for a cell (``cells`` are then ``group · nx · ny + s``).
+    link_scale : ndarray, shape (K,), optional
+        Per-track factor on ``lengths`` (the hypothesis' walker scale).
+    link_turn : ndarray, shape (K,), optional
+        Per-track angle added to ``rel`` (the hypothesis' turn of this link).
 
     Returns
     -------
@@ -97,16 +113,21 @@ def advance(
     """
     n_a = cost.shape[1]
     nxp = grid.free.shape[1]
-    # θ = ψ + rel
+    # θ = ψ (+ turn of the track's hypothesis) + rel
     ang = psi[:, None] + rel[None, :]
+    if link_turn is not None:
+        ang += link_turn[:, None]
     cos, sin = np.cos(ang), np.sin(ang)
     # u₀ = (ξ - origin) / cell + pad, the start in padded raster units
     u0 = (xi - grid.origin) / grid.rcell + grid.pad
-    step = lengths / grid.rcell
+    # γ l (× the hypothesis' scale) in raster units, (1 or K, G)
+    step = lengths[None, :] / grid.rcell
+    if link_scale is not None:
+        step = link_scale[:, None] * step
     # v = ξ + γ l (cos θ, sin θ), candidates laid out (K, G, A)
-    ux = step[None, :, None] * cos[:, None, :]
+    ux = step[:, :, None] * cos[:, None, :]
     ux += u0[:, 0, None, None]
-    uy = step[None, :, None] * sin[:, None, :]
+    uy = step[:, :, None] * sin[:, None, :]
     uy += u0[:, 1, None, None]
     # Raster cell of v (non-negative thanks to the padding, so truncation is ⌊u⌋).
     cell = uy.astype(np.int64)
@@ -123,18 +144,23 @@ def advance(
     k, g, a = np.nonzero(ok)
     cell, ux, uy = cell[ok], ux[ok], uy[ok]
 
-    # f_i = f_{i-1}(σ) + C1 |1 - γ| + C2 |φ|
+    # f_i = f_{i-1}(σ) + C1 |1 - γ| + C2 |φ| (+ the anchor's cost at v)
     score = f[k] + cost[g, a]
+    if end_cost is not None:
+        score += end_cost(grid.origin + grid.rcell * (np.column_stack([ux, uy]) - grid.pad))
     # DP cell of v: ⌊(u - pad) rcell / cell⌋
     ratio = grid.rcell / grid.cell
     dest = ((uy - grid.pad) * ratio).astype(np.int64) * grid.nx
     dest += ((ux - grid.pad) * ratio).astype(np.int64)
+    if group is not None:
+        dest += group[k].astype(np.int64) * (grid.nx * grid.ny)
 
     # Two free discs, radius safe(ξ) around the start and safe(v) around the
     # end, cover the move when γ l < safe(ξ) + max(safe(v), 0): no sampling.
     c0 = u0.astype(np.int64)
     safe0 = grid.safe[c0[:, 1] * nxp + c0[:, 0]]
-    needs = lengths[g] >= safe0[k] + grid.safe_end[cell]
+    move = step[k if link_scale is not None else 0, g] * grid.rcell
+    needs = move >= safe0[k] + grid.safe_end[cell]
     if not walls:
         needs[:] = False
 
