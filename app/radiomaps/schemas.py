@@ -50,6 +50,14 @@ class CalibrationSummary(BaseModel):
     transmitters: list[TransmitterCalibration]
 
 
+class TrackerAccuracy(BaseModel):
+    """What the phone tracker (HMM) measured replaying survey walks on maps built without them."""
+
+    method: Literal["hmm"]
+    walks: int
+    mean_walk_error_m: float | None
+
+
 class HeldOutAccuracy(BaseModel):
     """Errors of scans located on maps built without their walk (walk-level k-fold)."""
 
@@ -61,6 +69,7 @@ class HeldOutAccuracy(BaseModel):
     p50_error_m: float | None
     p90_error_m: float | None
     floor_error_rate: float | None
+    tracker: TrackerAccuracy | None = None
 
 
 class SiteTuningRead(BaseModel):

@@ -268,6 +268,14 @@ def compute_build(
             "p90_error_m": _r(float(np.percentile(held.error_m, 90))),
             "floor_error_rate": _r(float(1.0 - np.mean(held.floor_ok)), 4),
         }
+        replayed = replays.mean_errors().get(tuning.emission_weight)
+        if replayed is not None:
+            # what the server's tracker measured on walks the maps were built without
+            accuracy["tracker"] = {
+                "method": "hmm",
+                "walks": replays.scored,
+                "mean_walk_error_m": _r(replayed),
+            }
     plausible = [f for f in fits if f.plausible]
     summary = {
         "site_id": site.site_id,

@@ -4,6 +4,7 @@ stored and the device's fitted position published."""
 from __future__ import annotations
 
 import asyncio
+import math
 import multiprocessing as mp
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -35,6 +36,21 @@ FIT_FIELDS = (
 
 Publish = Callable[[list[dict[str, Any]]], None]
 """Hands position messages to the live subscribers."""
+
+
+def _finite(value: Any) -> Any:
+    """Return ``value`` with every non-finite float replaced by None.
+
+    A fit that fails scores infinity, which JSON (and PostgreSQL's JSON type)
+    cannot hold: it is stored and shown as null.
+    """
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
 
 
 class TrackFitter:
@@ -104,10 +120,11 @@ class TrackFitter:
             if track is None:
                 return None
             track.status = result["status"]
-            track.result = {"points": result.get("points", [])} | {
-                key: result[key] for key in FIT_FIELDS if key in result
-            }
-            track.score = result.get("score")
+            track.result = _finite(
+                {"points": result.get("points", [])}
+                | {key: result[key] for key in FIT_FIELDS if key in result}
+            )
+            track.score = _finite(result.get("score"))
             track.elapsed_ms = result.get("elapsed_ms")
             track.error = result.get("error")
             if result["status"] != "done" or not result.get("points"):

@@ -104,7 +104,8 @@ class TrackCandidate(BaseModel):
     """Step-length scale of the walker applied to every link."""
     drift: float
     """Heading drift removed from the turns (degrees per second, CCW positive)."""
-    score: float
+    score: float | None
+    """Lower is better; null when no track of the hypothesis survived."""
     points: list[FittedPoint] | None = None
 
 

@@ -304,6 +304,10 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     assert tuning["floor_weight"] == tuning["emission_weight"]
     assert scores["emission_log_score_by_weight"] and scores["floor_log_score_by_weight"]
     assert summary["accuracy"]["k"] == tuning["wknn_k"]
+    # beside the WKNN's, the accuracy says what the tracker measured on those replays
+    tracker = summary["accuracy"]["tracker"]
+    assert tracker["walks"] == scores["hmm_walks"]
+    assert tracker["mean_walk_error_m"] == by_w[tuning["emission_weight"]]
     # the radius floor is calibrated on those replays: 0 or more, never the WKNN median's
     # stand-in when replays exist
     assert tuning["accuracy_floor_m"] >= 0.0
