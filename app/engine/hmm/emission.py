@@ -109,12 +109,19 @@ class EmissionModel:
             self.ref_blocks.append(block)
 
     def _distances(self, tx: np.ndarray, rssi: np.ndarray) -> np.ndarray:
-        """Return the scan's k-NN distance to every survey scan (cached for the last scan)."""
+        """Return the scan's k-NN distance to every survey scan (cached for the last scan).
+
+        The cache is read and replaced whole, so devices positioned from other
+        threads on the same model can only miss it, never read another scan's.
+        """
         assert self.references is not None
         key = np.asarray(tx, np.int64).tobytes() + np.asarray(rssi, np.float64).tobytes()
-        if self._cache is None or self._cache[0] != key:
-            self._cache = (key, self.references.distances(tx, rssi))
-        return self._cache[1]
+        cached = self._cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        d = self.references.distances(tx, rssi)
+        self._cache = (key, d)
+        return d
 
     def log_likelihoods(self, tx: np.ndarray, rssi: np.ndarray) -> list[np.ndarray]:
         """Return the tempered log-likelihood of one scan at every point of every map."""
