@@ -67,6 +67,9 @@ class SiteTuning:
         (set by the build), else the median held-out WKNN error.
     pdr_walks : int
         Survey walks the PDR constants were fitted on (0: defaults kept).
+    radius_scale : float
+        Factor on the HMM posterior's radius (below 1 where the spread alone
+        held more than 68% of the replayed walks' errors).
     """
 
     weinberg_k: float
@@ -77,6 +80,7 @@ class SiteTuning:
     floor_weight: float
     accuracy_floor_m: float
     pdr_walks: int = 0
+    radius_scale: float = 1.0
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -123,6 +127,7 @@ class SiteTuning:
             floor_weight=self.floor_weight,
             heading_std_deg=self.heading_std_deg,
             accuracy_floor_m=self.accuracy_floor_m,
+            radius_scale=self.radius_scale,
         )
 
     def wknn(self, base: WknnParams | None = None) -> WknnParams:

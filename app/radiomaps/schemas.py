@@ -83,6 +83,7 @@ class SiteTuningRead(BaseModel):
     floor_weight: float
     accuracy_floor_m: float
     pdr_walks: int
+    radius_scale: float = 1.0
 
 
 class TuningScores(BaseModel):

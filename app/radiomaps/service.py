@@ -25,7 +25,7 @@ from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
 from app.engine.hmm.params import HmmParams
-from app.engine.hmm.validate import HeldWalk, WalkResult, candidate_results, radius_floor
+from app.engine.hmm.validate import HeldWalk, WalkResult, calibrate_radius, candidate_results
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, measure_walk
 from app.engine.radiomap import (
@@ -243,9 +243,9 @@ def compute_build(
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     tuning = tune_site(measured, validation, replays.choose(HmmParams().emission_weight))
-    floor = replays.radius_floor(tuning.emission_weight)
-    if floor is not None:
-        tuning = replace(tuning, accuracy_floor_m=floor)
+    radius = replays.radius_calibration(tuning.emission_weight)
+    if radius is not None:
+        tuning = replace(tuning, radius_scale=radius[0], accuracy_floor_m=radius[1])
     if not tune:
         defaults = SiteTuning.defaults()
         floor = (
@@ -328,7 +328,13 @@ class HmmReplays:
         self.per_fold = per_fold
         self.pdr = base.pdr()
         self.candidates = [
-            replace(base.hmm(), emission_weight=w, floor_weight=w, accuracy_floor_m=0.0)
+            replace(
+                base.hmm(),
+                emission_weight=w,
+                floor_weight=w,
+                accuracy_floor_m=0.0,
+                radius_scale=1.0,
+            )
             for w in HMM_WEIGHT_CANDIDATES
         ]
         self.results: list[list[WalkResult]] = [[] for _ in self.candidates]
@@ -370,13 +376,14 @@ class HmmReplays:
         }
         return one_standard_error_choice(scores, default)
 
-    def radius_floor(self, weight: float) -> float | None:
-        """Return the accuracy floor under which the radius holds 68% of the replays' errors."""
+    def radius_calibration(self, weight: float) -> tuple[float, float] | None:
+        """Return the radius scale and floor (m) under which the radius holds 68% of the
+        replays' errors; None without replays."""
         for c, results in zip(self.candidates, self.results, strict=True):
             if c.emission_weight == weight and results:
                 error = np.concatenate([r.error for r in results])
                 radius = np.concatenate([r.radius for r in results])
-                return radius_floor(error, radius)
+                return calibrate_radius(error, radius, c.min_accuracy_m)
         return None
 
 

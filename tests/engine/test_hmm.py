@@ -3,6 +3,8 @@ displacement, transition on the grid, position and floor from scans, snapshot an
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -77,6 +79,23 @@ def test_a_still_device_is_located_in_its_cell() -> None:
     # cell 12 has its centre at x = 12.5, y = 0.5
     assert (last.x, last.y) == pytest.approx((12.5, 0.5), abs=0.5)
     assert last.accuracy >= HmmParams().min_accuracy_m
+
+
+def test_the_radius_is_scaled_then_floored_as_the_build_calibrated_it() -> None:
+    def last_accuracy(params: HmmParams) -> float:
+        tracker = HmmTracker(EmissionModel([corridor(0, (0, 1))], params), params)
+        estimates = [e for k in range(8) for e in tracker.process(scan_at(1000 * k, 12, (0, 1)))]
+        return estimates[-1].accuracy
+
+    wide = HmmParams(min_accuracy_m=0.1, walk_noise_m2_per_s=5.0)
+    radius = last_accuracy(wide)
+    assert radius > 0.5
+    assert last_accuracy(replace(wide, radius_scale=0.5)) == pytest.approx(0.5 * radius)
+    assert last_accuracy(replace(wide, radius_scale=0.5, accuracy_floor_m=3.0)) == pytest.approx(
+        np.hypot(0.5 * radius, 3.0)
+    )
+    # never below the smallest radius the grid allows
+    assert last_accuracy(replace(wide, radius_scale=1e-6)) == pytest.approx(0.1)
 
 
 def test_the_floor_is_the_one_whose_map_explains_the_scan() -> None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from app.engine.hmm.params import HmmParams
-from app.engine.hmm.validate import radius_floor
+from app.engine.hmm.validate import calibrate_radius
 from app.engine.pdr_fit import WalkPdr
 from app.engine.tuning import (
     HEADING_STD_RANGE_DEG,
@@ -67,15 +67,24 @@ def test_stored_tuning_reads_back_and_missing_values_take_defaults() -> None:
     assert SiteTuning.from_dict({"wknn_k": 3, "unknown": 1}).floor_weight == tuning.floor_weight
 
 
-def test_the_radius_floor_makes_the_radius_hold_68_percent_of_the_errors() -> None:
+def test_the_radius_calibration_makes_the_radius_hold_68_percent_of_the_errors() -> None:
     rng = np.random.default_rng(2)
     error = np.abs(rng.normal(0.0, 5.0, 2000))
-    radius = np.full(2000, 1.0)
-    floor = radius_floor(error, radius)
-    assert np.mean(error <= np.hypot(radius, floor)) == pytest.approx(0.68, abs=0.005)
-    # a radius that already holds enough needs no floor
-    assert radius_floor(error, error + 1.0) == 0.0
-    assert radius_floor(np.zeros(0), np.zeros(0)) == 0.0
+
+    def held(radius: np.ndarray, scale: float, floor: float) -> float:
+        return float(np.mean(error <= np.maximum(1.0, np.hypot(scale * radius, floor))))
+
+    # a radius too narrow gets a floor in quadrature
+    narrow = np.full(2000, 1.0)
+    scale, floor = calibrate_radius(error, narrow, 1.0)
+    assert scale == 1.0 and floor > 0.0
+    assert held(narrow, scale, floor) == pytest.approx(0.68, abs=0.005)
+    # a radius too wide (it holds every error) shrinks, with no floor
+    wide = 3.0 * error + rng.uniform(0.0, 2.0, 2000)
+    scale, floor = calibrate_radius(error, wide, 1.0)
+    assert scale < 1.0 and floor == 0.0
+    assert held(wide, scale, floor) == pytest.approx(0.68, abs=0.005)
+    assert calibrate_radius(np.zeros(0), np.zeros(0), 1.0) == (1.0, 0.0)
 
 
 def test_a_candidate_replaces_the_default_only_when_better_by_more_than_luck() -> None:

@@ -91,6 +91,11 @@ class HmmParams:
         median held-out error of its radio-map build; on ILC site1's
         validation walks that put 69.5% of the errors inside the radius,
         against 11% without.
+    radius_scale : float
+        Factor on the posterior's 68% radius before the floor is added: the
+        build shrinks it where the posterior's spread alone holds more than
+        68% of the held-out errors (a radius too wide says as little as one
+        too narrow).
     """
 
     k: int = 4
@@ -120,5 +125,6 @@ class HmmParams:
     imu_timeout_ms: int = 3000
     min_accuracy_m: float = 1.0
     accuracy_floor_m: float = 0.0
+    radius_scale: float = 1.0
     max_reading_age_ms: int = 3000
     scans: ScanParams = field(default_factory=ScanParams)

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.special import logsumexp
 
 from app.engine.gaussian import R68_SIGMAS_2D
 from app.engine.hmm.emission import EmissionModel
@@ -18,6 +17,14 @@ from app.engine.wknn import unique_readings
 
 _PDR_KEYS = tuple(Pdr().snapshot())
 """Keys of a PDR snapshot; those holding None are left out of the HMM's snapshot."""
+
+
+def _logsumexp(x: np.ndarray) -> float:
+    """Return ln Σ exp(x) (-inf when every x is): scipy's costs ten times as much a call."""
+    top = float(np.max(x))
+    if not np.isfinite(top):
+        return top
+    return top + float(np.log(np.sum(np.exp(x - top))))
 
 
 class HmmTracker:
@@ -251,14 +258,14 @@ class HmmTracker:
         ll = model.log_likelihoods(tx, rssi)
         # per-floor marginal under the floor's own tempering: ln mean_j L_j^(w_f / w)
         rescale = p.floor_weight / p.emission_weight
-        marginal = np.array([logsumexp(rescale * v) - np.log(v.size) for v in ll])
+        marginal = np.array([_logsumexp(rescale * v) - np.log(v.size) for v in ll])
         n = marginal.size
         stay = np.exp(self.floor_logp)
         eps = p.floor_switch_prob
         # π_f = (1 - ε) b_f + ε (1 - b_f) / (n - 1)
         prior = (1.0 - eps) * stay + (eps * (1.0 - stay) / (n - 1) if n > 1 else 0.0)
         logp = np.log(np.maximum(prior, 1e-300)) + marginal
-        self.floor_logp = logp - logsumexp(logp)
+        self.floor_logp = logp - _logsumexp(logp)
         best = int(np.argmax(self.floor_logp))
         if self.map < 0 or (
             best != self.map and np.exp(self.floor_logp[best]) >= p.floor_switch_posterior
@@ -299,7 +306,7 @@ class HmmTracker:
         self.cov = np.zeros((2, 2))
         with np.errstate(divide="ignore"):
             log_prior = np.log(prior)
-        predictive = logsumexp(log_prior + ll) if prior.any() else -np.inf
+        predictive = _logsumexp(log_prior + ll) if prior.any() else -np.inf
         if predictive < ll.max() - p.relocate_margin:
             self._start(self.map, tx, rssi, ll)
             return
@@ -323,7 +330,10 @@ class HmmTracker:
         cov = np.einsum("n,ni,nj->ij", w, dev, dev) + self.cov
         pos = mean + self.d
         radius = max(p.min_accuracy_m, R68_SIGMAS_2D * float(np.sqrt(np.trace(cov) / 2.0)))
-        accuracy = float(np.hypot(radius, p.accuracy_floor_m))
+        # r' = max(r_min, sqrt((s r)² + f²)): the build's calibration of the radius
+        accuracy = max(
+            p.min_accuracy_m, float(np.hypot(p.radius_scale * radius, p.accuracy_floor_m))
+        )
         self.t_emit = t
         return Estimate(
             t=int(t),

@@ -124,20 +124,31 @@ def candidate_results(
     return out
 
 
-def radius_floor(error: np.ndarray, radius: np.ndarray, coverage: float = 0.68) -> float:
-    """Return the floor f (m) for which ``sqrt(radius² + f²)`` holds ``coverage`` of the errors.
+def calibrate_radius(
+    error: np.ndarray, radius: np.ndarray, min_radius: float, coverage: float = 0.68
+) -> tuple[float, float]:
+    """Return the radius scale and floor that make the radius hold ``coverage`` of the errors.
 
-    0 when the radius alone already holds that much; found by bisection, the
-    coverage growing with f.
+    The reported radius is ``max(r_min, sqrt((s r)² + f²))``. A radius that
+    holds more shrinks (s < 1, f = 0); one that holds less gets a floor
+    (s = 1, f > 0). Both keep the radii's order, so how well the radius ranks
+    the errors is unchanged. Found by bisection: coverage grows with s and
+    with f. (1, 0) without errors.
     """
-    if error.size == 0 or np.mean(error <= radius) >= coverage:
-        return 0.0
+
+    def held(s: float, f: float) -> float:
+        return float(np.mean(error <= np.maximum(min_radius, np.hypot(s * radius, f))))
+
+    if error.size == 0:
+        return 1.0, 0.0
+    if held(1.0, 0.0) >= coverage:
+        lo, hi = 0.0, 1.0
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if held(mid, 0.0) >= coverage else (mid, hi)
+        return hi, 0.0
     lo, hi = 0.0, float(np.max(error)) + 1.0
     for _ in range(50):
         mid = 0.5 * (lo + hi)
-        # r' = sqrt(r² + f²)
-        if np.mean(error <= np.hypot(radius, mid)) >= coverage:
-            hi = mid
-        else:
-            lo = mid
-    return hi
+        lo, hi = (lo, mid) if held(1.0, mid) >= coverage else (mid, hi)
+    return 1.0, hi

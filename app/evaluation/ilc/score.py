@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import spearmanr
 
 from app.engine.pdr_fit import wrap_deg
 from app.engine.samples import Estimate
@@ -100,8 +101,17 @@ class Row:
     heading_error: float
     n_heading: int
     in_accuracy: float
+    radius_rank: float
     cpu_per_update_s: float
     walks: int
+
+
+def radius_rank(error: np.ndarray, radius: np.ndarray) -> float:
+    """Return Spearman's correlation of radius and error: does a larger radius mean a larger
+    error? NaN with fewer than three estimates or a constant radius."""
+    if error.size < 3 or np.ptp(radius) == 0:
+        return float("nan")
+    return float(spearmanr(radius, error).statistic)
 
 
 def summarise(method: str, scores: Sequence[WalkScore], cpu_s: float, updates: int) -> Row:
@@ -129,6 +139,7 @@ def summarise(method: str, scores: Sequence[WalkScore], cpu_s: float, updates: i
         heading_error=float(hdg.mean()) if hdg.size else float("nan"),
         n_heading=int(hdg.size),
         in_accuracy=float(within.mean()) if within.size else float("nan"),
+        radius_rank=radius_rank(right, acc[ok]),
         cpu_per_update_s=cpu_s / updates if updates else float("nan"),
         walks=len(scores),
     )

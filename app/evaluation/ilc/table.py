@@ -17,6 +17,7 @@ COLUMNS = (
     "floor err",
     "|hdg err| °",
     "in acc.",
+    "acc. rank",
     "CPU/update",
 )
 """Column headers, in the order ``table_cells`` returns a row's cells."""
@@ -46,5 +47,6 @@ def table_cells(row: Row) -> list[str]:
         num(100.0 * row.floor_error, "{:.2f}%"),
         num(row.heading_error, "{:.1f}"),
         num(100.0 * row.in_accuracy, "{:.0f}%"),
+        num(row.radius_rank),
         format_cpu(row.cpu_per_update_s),
     ]
