@@ -113,8 +113,8 @@ class ReferenceScans:
         col, scan, level = col[order], scan[order], level[order]
         first = np.ones(col.size, dtype=bool)
         first[1:] = (col[1:] != col[:-1]) | (scan[1:] != scan[:-1])
-        heard = first & (level > 0)
-        col, scan, level = col[heard], scan[heard], level[heard]
+        strongest = first & (level > 0)
+        col, scan, level = col[strongest], scan[strongest], level[strongest]
         self.col_start = np.searchsorted(col, np.arange(int(self.usable.sum()) + 1))
         self.ref_scan = scan.astype(np.int32)
         self.ref_level = level
