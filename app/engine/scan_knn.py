@@ -23,8 +23,9 @@ References are held sparse, by transmitter (each usable transmitter's
 column lists the reference scans that heard it and at what level, dB above
 ``floor_dbm``), so a query visits only the (scan, transmitter) pairs both
 heard: on ILC site1, 7,189 scans hold 0.8 M such pairs (6.4 MB) and a scan
-of 200 transmitters visits about 165,000 of them, in under 2 ms, where a
-dense matrix costs (reference scans × transmitters heard) gathered.
+of 200 transmitters visits about 165,000 of them. The visit is a compiled
+loop (numba, compiled once and cached on disk): 0.2 ms, where numpy's
+gather-and-bincount took 1.5 ms and a dense matrix 4.5 ms.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from app.engine.radiomap import RadioMap, Survey
 
@@ -173,26 +175,18 @@ class ReferenceScans:
         query_total = float(level.sum())
         if tx.size == 0:
             return np.full(self.n_scans, np.inf)
-        # the entries of every reference scan that heard one of the query's transmitters
-        start = self.col_start[self.column[tx]]
-        count = self.col_start[self.column[tx] + 1] - start
-        n = int(count.sum())
-        entry = np.repeat(start - np.cumsum(count) + count, count) + np.arange(n)
-        scan, ref = self.ref_scan[entry], self.ref_level[entry]
-        query = np.repeat(np.arange(tx.size), count)
-        s, w = level[query], self.tx_weight[tx][query]
-        common_weight = np.bincount(scan, weights=w, minlength=self.n_scans)
-        # d₁ = Σ w |s - r| / Σ w over common transmitters
-        weighted_abs = np.bincount(scan, weights=w * np.abs(s - ref), minlength=self.n_scans)
-        mean_abs = np.where(
-            common_weight > 0,
-            weighted_abs / np.maximum(common_weight, 1e-12),
+        return _distances(
+            self.col_start,
+            self.ref_scan,
+            self.ref_level,
+            self.column[tx],
+            level,
+            self.tx_weight[tx],
+            self.total,
+            query_total,
             p.no_common_db,
+            p.unshared_penalty,
         )
-        # shared = (Σ_common r + Σ_common s) / (Σ r + Σ s)
-        common_level = np.bincount(scan, weights=ref + s, minlength=self.n_scans)
-        shared = common_level / np.maximum(self.total + query_total, 1e-12)
-        return mean_abs + p.unshared_penalty * (1.0 - shared) ** 2
 
     def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
         """Return the position (m) of the ``k`` nearest scans of ``block``.
@@ -225,3 +219,43 @@ class ReferenceScans:
         on = floors == floor
         xy = weight[on] @ self.xy[near[on]] / weight[on].sum()
         return ScanFix(xy=xy, floor=floor, distance=float(dn.min()))
+
+
+@njit(cache=True)
+def _distances(
+    col_start: np.ndarray,
+    ref_scan: np.ndarray,
+    ref_level: np.ndarray,
+    cols: np.ndarray,
+    level: np.ndarray,
+    weight: np.ndarray,
+    total: np.ndarray,
+    query_total: float,
+    no_common_db: float,
+    penalty: float,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Return every reference scan's distance to a query, visiting only the pairs both heard.
+
+    ``cols`` are the query's transmitters' columns, ``level`` and ``weight``
+    their levels (dB above the floor) and rarity weights; ``total`` each
+    reference scan's summed level.
+    """
+    n = total.size
+    common_weight = np.zeros(n)
+    weighted_abs = np.zeros(n)
+    common_level = np.zeros(n)
+    for q in range(cols.size):
+        s, w = level[q], weight[q]
+        for e in range(col_start[cols[q]], col_start[cols[q] + 1]):
+            j, r = ref_scan[e], ref_level[e]
+            common_weight[j] += w
+            weighted_abs[j] += w * abs(s - r)
+            common_level[j] += r + s
+    out = np.empty(n)
+    for j in range(n):
+        # d₁ = Σ w |s - r| / Σ w over common transmitters
+        mean_abs = weighted_abs[j] / common_weight[j] if common_weight[j] > 0 else no_common_db
+        # shared = (Σ_common r + Σ_common s) / (Σ r + Σ s)
+        shared = common_level[j] / max(total[j] + query_total, 1e-12)
+        out[j] = mean_abs + penalty * (1.0 - shared) ** 2
+    return out

@@ -119,3 +119,25 @@ def test_the_hmm_emission_peaks_where_the_scan_was_made(survey: Survey) -> None:
     # a scan sharing nothing with the survey is no evidence
     (flat,) = model.log_likelihoods(np.array([TX_X.size + 3]), np.array([-60.0]))
     assert np.all(flat == 0.0)
+
+
+def test_the_distance_is_the_mean_difference_on_shared_transmitters_plus_the_unshared_penalty() -> (
+    None
+):
+    # scan 0 hears tx 0 at -60 (and a weaker repeat at -90, ignored) and tx 1 at -70;
+    # scan 1 hears tx 1 at -80 and tx 2 at -50; levels are dB above -100
+    survey = Survey(
+        scan_t=np.array([0, 1000], dtype=np.int64),
+        scan_xy=np.array([[0.0, 0.0], [10.0, 0.0]]),
+        scan_floor=np.zeros(2, dtype=np.int32),
+        scan_walk=np.array([0, 1], dtype=np.int32),
+        reading_scan=np.array([0, 0, 0, 1, 1], dtype=np.int32),
+        reading_tx=np.array([0, 0, 1, 1, 2], dtype=np.int32),
+        reading_rssi=np.array([-60.0, -90.0, -70.0, -80.0, -50.0]),
+    )
+    params = ScanKnnParams(min_heard=1, rarity_power=0.0, unshared_penalty=50.0)
+    refs = ReferenceScans(survey, n_tx=3, params=params)
+    d = refs.distances(np.array([0, 1]), np.array([-65.0, -70.0]))
+    # scan 0 shares both: (|35 - 40| + |30 - 30|) / 2, and all the signal is shared
+    # scan 1 shares tx 1: |30 - 20|, shared (20 + 30) / (70 + 65) of the signal
+    assert d == pytest.approx([2.5, 10.0 + 50.0 * (1.0 - 50.0 / 135.0) ** 2])
