@@ -188,17 +188,25 @@ class ReferenceScans:
             p.unshared_penalty,
         )
 
-    def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
-        """Return the position (m) of the ``k`` nearest scans of ``block``.
+    def neighbours(
+        self, d: np.ndarray, block: slice, k: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the positions (k, 2) and weights (k,) of the ``k`` nearest scans of ``block``.
 
-        ``d`` are the block's distances; weights are ``(d / d_min)^-weight_power``.
+        ``d`` are the block's distances (some finite); weights are
+        ``(d / d_min)^-weight_power``, summing to 1.
         """
         k = min(k or self.params.k, d.size)
         near = np.argpartition(d, k - 1)[:k]
         near = near[np.isfinite(d[near])]
         best = max(float(d[near].min()), 1e-3)
         weight = (np.maximum(d[near], best) / best) ** -self.params.weight_power
-        return weight @ self.xy[block][near] / weight.sum()
+        return self.xy[block][near], weight / weight.sum()
+
+    def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
+        """Return the position (m) of the ``k`` nearest scans of ``block`` (``neighbours``)."""
+        xy, weight = self.neighbours(d, block, k)
+        return weight @ xy
 
     def locate(self, tx: np.ndarray, rssi: np.ndarray, k: int | None = None) -> ScanFix | None:
         """Locate one scan: the k nearest reference scans on their favoured floor.

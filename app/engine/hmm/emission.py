@@ -190,6 +190,20 @@ class EmissionModel:
         # tempered: w ln L
         return p.emission_weight * ll
 
+    def scan_neighbours(
+        self, f: int, tx: np.ndarray, rssi: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return the per-scan k-NN's neighbours on map ``f``: positions (k, 2), weights (k,).
+
+        None without survey scans or when the scan shares nothing with the floor's.
+        """
+        if self.references is None:
+            return None
+        d = self._distances(tx, rssi)[self.ref_blocks[f]]
+        if not np.isfinite(d).any():
+            return None
+        return self.references.neighbours(d, self.ref_blocks[f])
+
     def knn(self, f: int, tx: np.ndarray, rssi: np.ndarray, k: int) -> np.ndarray:
         """Return the weighted mean position (m) of the k nearest fingerprints on map ``f``.
 

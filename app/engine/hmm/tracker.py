@@ -63,6 +63,7 @@ class HmmTracker:
             self.d = np.zeros(2)
             self.odometry = np.zeros(2)
             self.cov = np.zeros((2, 2))
+            self.fix_var = 0.0
             self.t_scan = -1
             self.t_emit = -1
             self.t_imu = -1
@@ -91,6 +92,7 @@ class HmmTracker:
             "d": self.d.copy(),
             "odometry": self.odometry.copy(),
             "cov": self.cov.copy(),
+            "fix_var": self.fix_var,
             "t_scan": self.t_scan,
             "t_emit": self.t_emit,
             "t_imu": self.t_imu,
@@ -120,6 +122,7 @@ class HmmTracker:
         self.d = np.asarray(state["d"], dtype=float)
         self.odometry = np.asarray(state.get("odometry", np.zeros(2)), dtype=float)
         self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
+        self.fix_var = float(state.get("fix_var", 0.0))
         self.t_scan = int(state["t_scan"])
         self.t_emit = int(state["t_emit"])
         self.t_imu = int(state["t_imu"])
@@ -273,8 +276,26 @@ class HmmTracker:
             self._start(best, tx, rssi, ll[best])
         else:
             self._update(t, ll[self.map], tx, rssi)
+        self.fix_var = self._fix_variance(tx, rssi)
         self.t_scan = t
         out.append(self._estimate(t))
+
+    def _fix_variance(self, tx: np.ndarray, rssi: np.ndarray) -> float:
+        """Return how far the scan's own k-NN disagrees with the posterior (m², per axis).
+
+        Its neighbours' spread and the distance of their mean from the
+        posterior's: where the fingerprints are ambiguous or the track has
+        drifted from them, the position is less sure than the posterior says.
+        """
+        near = self.model.scan_neighbours(self.map, tx, rssi)
+        if near is None:
+            return 0.0
+        xy, weight = near
+        fix = weight @ xy
+        # s² = Σ w |x_i - x̄|² / 2, g² = |x̄ - x̂|²
+        spread2 = float(weight @ np.sum((xy - fix) ** 2, axis=1)) / 2.0
+        mean = self.prob @ self.model.xy[self.map]
+        return spread2 + float(np.sum((mean - fix) ** 2))
 
     def _start(self, f: int, tx: np.ndarray, rssi: np.ndarray, ll: np.ndarray) -> None:
         """(Re)start the position on map ``f``: k-NN prior times the scan's emission."""
@@ -325,11 +346,15 @@ class HmmTracker:
         w = self.prob[nz]
         # x̂ = Σ p_j x_j + D
         mean = w @ xy[nz]
-        dev = xy[nz] - mean
-        # C = Σ p_j (x_j - x̂)(x_j - x̂)ᵀ + Σ_D
-        cov = np.einsum("n,ni,nj->ij", w, dev, dev) + self.cov
         pos = mean + self.d
-        radius = max(p.min_accuracy_m, R68_SIGMAS_2D * float(np.sqrt(np.trace(cov) / 2.0)))
+        # the radius's spread: the posterior tempered by τ (the emission is sharper
+        # than the fingerprints resolve), the steps since the scan and the k-NN's disagreement
+        tempered = w**p.radius_temper
+        tempered /= tempered.sum()
+        centre = tempered @ xy[nz]
+        var = float(tempered @ np.sum((xy[nz] - centre) ** 2, axis=1)) / 2.0
+        var += float(np.trace(self.cov)) / 2.0 + self.fix_var
+        radius = max(p.min_accuracy_m, R68_SIGMAS_2D * np.sqrt(var))
         # r' = max(r_min, sqrt((s r)² + f²)): the build's calibration of the radius
         accuracy = max(
             p.min_accuracy_m, float(np.hypot(p.radius_scale * radius, p.accuracy_floor_m))
