@@ -60,6 +60,7 @@ class HmmTracker:
             self.map = -1
             self.floor_logp = np.full(n_maps, -np.log(n_maps))
             self.prob = np.zeros(0)
+            self.summary: tuple[np.ndarray, float] | None = None
             self.d = np.zeros(2)
             self.odometry = np.zeros(2)
             self.cov = np.zeros((2, 2))
@@ -119,6 +120,7 @@ class HmmTracker:
         self.floor_logp = np.asarray(state["floor_logp"], dtype=float)
         self.prob = np.zeros(int(state["n_points"]))
         self.prob[np.asarray(state["prob_index"], dtype=np.int64)] = state["prob_value"]
+        self.summary = None
         self.d = np.asarray(state["d"], dtype=float)
         self.odometry = np.asarray(state.get("odometry", np.zeros(2)), dtype=float)
         self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
@@ -294,7 +296,7 @@ class HmmTracker:
         fix = weight @ xy
         # s² = Σ w |x_i - x̄|² / 2, g² = |x̄ - x̂|²
         spread2 = float(weight @ np.sum((xy - fix) ** 2, axis=1)) / 2.0
-        mean = self.prob @ self.model.xy[self.map]
+        mean, _ = self._posterior()
         return spread2 + float(np.sum((mean - fix) ** 2))
 
     def _start(self, f: int, tx: np.ndarray, rssi: np.ndarray, ll: np.ndarray) -> None:
@@ -306,6 +308,7 @@ class HmmTracker:
         logp = -0.5 * np.sum((xy - x0) ** 2, axis=1) / p.init_std_m**2 + ll
         self.map = f
         self.prob = self._normalised(logp)
+        self.summary = None
         self.d = np.zeros(2)
         self.cov = np.zeros((2, 2))
 
@@ -332,6 +335,7 @@ class HmmTracker:
             self._start(self.map, tx, rssi, ll)
             return
         self.prob = self._normalised(log_prior + ll)
+        self.summary = None
 
     @staticmethod
     def _normalised(logp: np.ndarray) -> np.ndarray:
@@ -339,20 +343,31 @@ class HmmTracker:
         w = np.exp(logp - np.max(logp))
         return w / w.sum()
 
+    def _posterior(self) -> tuple[np.ndarray, float]:
+        """Return the posterior's mean (m) and the per-axis variance (m²) of its tempered form.
+
+        Tempered by τ (p_j^τ, renormalised): the emission makes the posterior
+        sharper than the fingerprints resolve. Kept until the posterior changes
+        (at a scan), as steps and heartbeats emit from the same one.
+        """
+        if self.summary is None:
+            xy = self.model.xy[self.map]
+            nz = np.flatnonzero(self.prob)
+            # x̂ = Σ p_j x_j
+            mean = self.prob[nz] @ xy[nz]
+            tempered = self.prob[nz] ** self.params.radius_temper
+            tempered /= tempered.sum()
+            centre = tempered @ xy[nz]
+            var = float(tempered @ np.sum((xy[nz] - centre) ** 2, axis=1)) / 2.0
+            self.summary = (mean, var)
+        return self.summary
+
     def _estimate(self, t: int) -> Estimate:
         p, model = self.params, self.model
-        xy = model.xy[self.map]
-        nz = np.flatnonzero(self.prob)
-        w = self.prob[nz]
-        # x̂ = Σ p_j x_j + D
-        mean = w @ xy[nz]
+        mean, var = self._posterior()
         pos = mean + self.d
-        # the radius's spread: the posterior tempered by τ (the emission is sharper
-        # than the fingerprints resolve), the steps since the scan and the k-NN's disagreement
-        tempered = w**p.radius_temper
-        tempered /= tempered.sum()
-        centre = tempered @ xy[nz]
-        var = float(tempered @ np.sum((xy[nz] - centre) ** 2, axis=1)) / 2.0
+        # the radius's spread: the tempered posterior's, the steps' since the scan and the
+        # per-scan k-NN's disagreement with the posterior
         var += float(np.trace(self.cov)) / 2.0 + self.fix_var
         radius = max(p.min_accuracy_m, R68_SIGMAS_2D * np.sqrt(var))
         # r' = max(r_min, sqrt((s r)² + f²)): the build's calibration of the radius
