@@ -25,11 +25,10 @@ from app.core.errors import (
     validation_details,
 )
 from app.core.openapi import json_body
-from app.core.sample_policy import report, validate_screened
+from app.core.sample_policy import report
 from app.core.security import Principal
 from app.ingest import flows, service
 from app.ingest.schemas import (
-    SAMPLE_MODELS,
     BulkAnswer,
     BulkIngest,
     IngestAccepted,
@@ -67,26 +66,10 @@ def _parse(model: type[M], raw: bytes | str) -> M:
 
 
 def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[str, Any]]:
-    """Validate a device's batch under the per-sample policy, leave out cached WiFi repeats;
-    count and report the drops."""
-    try:
-        batch, drops = validate_screened(
-            IngestBatch,
-            raw,
-            SAMPLE_MODELS,
-            max_offset_ms=round(state.settings.time_outlier_s * 1000),
-        )
-    except ValidationError as exc:
-        raise Invalid(
-            "request failed validation", details=validation_details(exc.errors(include_url=False))
-        ) from exc
-    wifi, stale = service.drop_stale_wifi(batch.wifi, state.settings.wifi_max_age_ms, drops)
-    if stale:
-        if len(wifi) + batch.sample_count - len(batch.wifi) == 0:
-            raise Invalid("every sample was dropped", details=drops + stale)
-        batch = batch.model_copy(update={"wifi": wifi})
-    state.metrics.count_drops(drops + stale)
-    return batch, report(drops + stale)
+    """Validate a device's batch under the per-sample policy; count and report the drops."""
+    batch, drops = service.screen_batch(raw, state.settings)
+    state.metrics.count_drops(drops)
+    return batch, report(drops)
 
 
 def _answer(result: dict[str, Any], wait: bool) -> JSONResponse:

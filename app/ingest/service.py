@@ -5,12 +5,20 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from pydantic import ValidationError
+
 from app.core.config import Settings
-from app.core.errors import Forbidden, Invalid, NotFound, TooLarge
-from app.core.sample_policy import body_indices
+from app.core.errors import Forbidden, Invalid, NotFound, TooLarge, validation_details
+from app.core.sample_policy import body_indices, validate_screened
 from app.core.security import Principal
 from app.core.time import now_ms
-from app.ingest.schemas import SAMPLE_KINDS, IngestBatch, LocatorBatch, RadioSample
+from app.ingest.schemas import (
+    SAMPLE_KINDS,
+    SAMPLE_MODELS,
+    IngestBatch,
+    LocatorBatch,
+    RadioSample,
+)
 from app.sites.cache import SiteVersions
 
 
@@ -23,6 +31,28 @@ def check_site(*, principal: Principal, site_id: str, sites: SiteVersions) -> in
     if version is None:
         raise NotFound(f"site '{site_id}' not found")
     return version
+
+
+def screen_batch(raw: bytes | str, settings: Settings) -> tuple[IngestBatch, list[dict[str, Any]]]:
+    """Return a device's batch validated under the per-sample policy, cached WiFi repeats left
+    out, and what was dropped; the one conversion of an ingest body for every path.
+
+    Raises Invalid when the body's structure is wrong or every sample was dropped.
+    """
+    try:
+        batch, drops = validate_screened(
+            IngestBatch, raw, SAMPLE_MODELS, max_offset_ms=round(settings.time_outlier_s * 1000)
+        )
+    except ValidationError as exc:
+        raise Invalid(
+            "request failed validation", details=validation_details(exc.errors(include_url=False))
+        ) from exc
+    wifi, stale = drop_stale_wifi(batch.wifi, settings.wifi_max_age_ms, drops)
+    if stale:
+        if len(wifi) + batch.sample_count - len(batch.wifi) == 0:
+            raise Invalid("every sample was dropped", details=drops + stale)
+        batch = batch.model_copy(update={"wifi": wifi})
+    return batch, drops + stale
 
 
 def drop_stale_wifi(

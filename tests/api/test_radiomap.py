@@ -14,10 +14,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from app.core.config import Settings
 from app.datasets import data_dir
 from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_walk, site_walks
 from app.engine.hmm.params import HmmParams
 from app.engine.pdr import detect_steps
+from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages, served_track
+from app.evaluation.ilc.score import estimates_from_positions, score_walk
 from app.evaluation.metrics import truth_at
 from app.evaluation.trackfit_eval import as_links, raw_track, simplify
 from app.importers.ilc import survey_body, walk_samples
@@ -250,6 +253,31 @@ def _replay_walk(
         assert r.status_code == 200, r.text
         out += r.json()["positions"]
     return out
+
+
+@needs_site1
+def test_the_in_process_stages_are_the_server_on_its_own_build(
+    client: TestClient, settings: Settings, built_site: dict[str, Any], walks: list[Path]
+) -> None:
+    sid = built_site["site_id"]
+    walk = read_walk(walks[N_SURVEYS], FLOOR)
+    # the worker loads the site first, so no batch of the walk waits on it
+    _replay(client, sid, "warm-up", walks[N_SURVEYS])
+    positions = estimates_from_positions(
+        _replay_walk(client, sid, "through-http", walks[N_SURVEYS], "scan"), [FLOOR]
+    )
+    # the evaluation's stages assemble the stored site as a worker does
+    engines = load_engines(settings.resolved_database_url, sid, settings)
+    stages = replay_stages(engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings)
+    assert all(len(stages.scores[name]) == 1 for name in STAGES)
+    assert stages.updates > 0 and stages.cpu_s > 0.0
+    # the live track and the refined one as served are the server's, position for position
+    for stage, smoothed in ((STAGES[1], False), (STAGES[2], None)):
+        mine = [e for e in positions if smoothed is None or e.smoothed == smoothed]
+        server = score_walk(walk.waypoints, 0, served_track(mine) if smoothed is None else mine)
+        (in_process,) = stages.scores[stage]
+        assert server.error.size > 20
+        assert np.allclose(in_process.error, server.error, atol=2e-3)
 
 
 def _live(positions: list[dict[str, Any]]) -> list[dict[str, Any]]:

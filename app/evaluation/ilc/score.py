@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.stats import spearmanr
@@ -66,6 +67,33 @@ def path_direction(waypoints: np.ndarray, t: np.ndarray) -> np.ndarray:
     # φ = atan2(Δx, Δy), clockwise from +y
     out[ok] = np.mod(np.degrees(np.arctan2(d[ok, 0], d[ok, 1])), 360.0)
     return out
+
+
+def estimates_from_positions(
+    positions: Sequence[dict[str, Any]], floors: Sequence[str]
+) -> list[Estimate]:
+    """Return the API's position messages as estimates, floors numbered as in ``floors``
+    (-1 for any other)."""
+    index = {name: i for i, name in enumerate(floors)}
+
+    def num(v: float | None) -> float:
+        return float("nan") if v is None else float(v)
+
+    return [
+        Estimate(
+            t=int(p["t"]),
+            x=float(p["x"]),
+            y=float(p["y"]),
+            z=num(p.get("z")),
+            floor=index.get(p["floor_id"], -1),
+            heading=num(p.get("heading")),
+            accuracy=num(p.get("accuracy")),
+            speed=num(p.get("speed")),
+            method=str(p.get("method")),
+            smoothed=bool(p.get("smoothed")),
+        )
+        for p in positions
+    ]
 
 
 def score_walk(waypoints: np.ndarray, floor: int, estimates: Sequence[Estimate]) -> WalkScore:

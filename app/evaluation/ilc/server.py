@@ -8,6 +8,12 @@ posted as one-second batches with ``?wait=true``. The positions that come
 back are scored as the in-process rows are. Nothing of the engine is
 assembled here: the figure is the server's.
 
+The same walks then go through the phone engine in process, stage by stage,
+on the site read back from the server's own database and assembled as its
+workers assemble it (``app.evaluation.ilc.ablation``): its fixed-lag row is
+the server's row computed without HTTP, and the rows before it show what
+each stage adds.
+
 WiFi goes as phones send it: every reading of every scan, stale cached ones
 included, either with the scan's time as ``t`` and the access point's own
 ``last_seen`` (``scan``), or with each reading's last-seen time as its ``t``
@@ -27,18 +33,24 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import httpx
 
+from app.core.config import Settings
 from app.datasets import data_dir
 from app.datasets.ilc import Walk, read_floor, read_walk, site_walks
-from app.engine.samples import Estimate
+from app.evaluation.ilc.ablation import StageScores, load_engines, replay_stages
 from app.evaluation.ilc.experiment import add_split_arguments
 from app.evaluation.ilc.knn_baseline import scan_knn_scores
-from app.evaluation.ilc.score import WalkScore, score_walk, summarise
+from app.evaluation.ilc.score import (
+    WalkScore,
+    estimates_from_positions,
+    score_walk,
+    summarise,
+)
 from app.evaluation.ilc.table import COLUMNS, table_cells
 from app.evaluation.split import split_ids, walk_unit
 from app.importers.ilc import WIFI_TIMES, survey_body, walk_samples
@@ -56,6 +68,7 @@ class ServerRun:
     scores: list[WalkScore]
     wall_s: float
     positions: dict[str, list[dict[str, Any]]]
+    stages: StageScores | None = None
 
 
 def _free_port() -> int:
@@ -71,6 +84,7 @@ class LocalServer:
         self.port = _free_port()
         self.key = secrets.token_urlsafe(24)
         self.url = f"http://127.0.0.1:{self.port}"
+        self.database_url = f"sqlite:///{(home / 'locus.db').resolve()}"
         env = os.environ | {"LOCUS_ADMIN_KEY": self.key} | (env or {})
         command = [sys.executable, "-m", "app.cli", "serve", "--port", str(self.port)]
         command += ["--home", str(home), "--workers", str(workers)]
@@ -117,28 +131,6 @@ def _upload_site(
                 raise RuntimeError(f"survey {b['name']} refused: {r.status_code} {r.text[:300]}")
 
 
-def _estimates(positions: list[dict[str, Any]], floors: Sequence[str]) -> list[Estimate]:
-    index = {name: i for i, name in enumerate(floors)}
-
-    def num(v: float | None) -> float:
-        return float("nan") if v is None else float(v)
-
-    return [
-        Estimate(
-            t=int(p["t"]),
-            x=float(p["x"]),
-            y=float(p["y"]),
-            z=num(p.get("z")),
-            floor=index.get(p["floor_id"], -1),
-            heading=num(p.get("heading")),
-            accuracy=num(p.get("accuracy")),
-            speed=num(p.get("speed")),
-            method=str(p.get("method")),
-        )
-        for p in positions
-    ]
-
-
 def evaluate_through_server(
     site_dir: Path,
     floors: Sequence[str],
@@ -147,10 +139,12 @@ def evaluate_through_server(
     *,
     wifi_times: str = "scan",
     tuning: bool = True,
+    with_stages: bool = True,
     status: Callable[[str], None] = lambda _: None,
     progress: Callable[[int], None] = lambda _: None,
 ) -> ServerRun:
-    """Start a server, survey and build it from ``train``, replay ``test`` and score it."""
+    """Start a server, survey and build it from ``train``, replay ``test`` and score it;
+    ``with_stages``, also score each stage of the phone engine in process on its build."""
     if wifi_times not in WIFI_TIMES:
         raise ValueError(f"wifi_times must be one of {WIFI_TIMES}")
     with (
@@ -177,12 +171,19 @@ def evaluate_through_server(
                     sent_at={"wifi": walk.wifi.t.tolist()},
                 )
                 positions[walk.walk_id] = got
-                scores.append(
-                    score_walk(walk.waypoints, floors.index(walk.floor), _estimates(got, floors))
-                )
+                estimates = estimates_from_positions(got, floors)
+                scores.append(score_walk(walk.waypoints, floors.index(walk.floor), estimates))
                 progress(i + 1)
             wall_s = time.perf_counter() - started
-    return ServerRun(build=build, scores=scores, wall_s=wall_s, positions=positions)
+        stages = None
+        if with_stages:
+            status("the same walks in process, stage by stage, on the server's build")
+            settings = Settings()
+            engines = load_engines(srv.database_url, SITE_ID, settings)
+            stages = replay_stages(
+                engines, SITE_ID, test, floors, wifi_times=wifi_times, settings=settings
+            )
+    return ServerRun(build, scores, wall_s, positions, stages)
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -255,7 +256,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     row = summarise(label, run.scores, 0.0, 0)
     table = Table(title=f"ILC site1 through locus serve, {len(held)} held-out walks")
     for i, col in enumerate(COLUMNS):
-        table.add_column(col, justify="left" if i == 0 else "right")
+        table.add_column(col, justify="left" if i == 0 else "right", no_wrap=i == 0)
+    if run.stages is not None:
+        for stage in run.stages.rows():
+            table.add_row(*table_cells(replace(stage, method=f"in process: {stage.method}")))
     table.add_row(*table_cells(row))
     with console.status("per-scan k-NN on the same split"):
         baseline = scan_knn_scores(floors, train_walks, held)
