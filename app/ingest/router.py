@@ -22,7 +22,7 @@ from app.core.errors import (
     Invalid,
     TooLarge,
     error_body,
-    validation_details,
+    validation_failed,
 )
 from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
@@ -61,9 +61,7 @@ def _parse(model: type[M], raw: bytes | str) -> M:
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:
-        raise Invalid(
-            "request failed validation", details=validation_details(exc.errors(include_url=False))
-        ) from exc
+        raise validation_failed(exc.errors(include_url=False)) from exc
 
 
 def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[str, Any]]:
@@ -77,9 +75,7 @@ def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[s
             max_offset_ms=round(state.settings.time_outlier_s * 1000),
         )
     except ValidationError as exc:
-        raise Invalid(
-            "request failed validation", details=validation_details(exc.errors(include_url=False))
-        ) from exc
+        raise validation_failed(exc.errors(include_url=False)) from exc
     wifi, stale = service.drop_stale_wifi(batch.wifi, state.settings.wifi_max_age_ms, drops)
     if stale:
         if len(wifi) + batch.sample_count - len(batch.wifi) == 0:

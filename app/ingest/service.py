@@ -6,7 +6,7 @@ import json
 from typing import Any
 
 from app.core.config import Settings
-from app.core.errors import Forbidden, Invalid, NotFound, TooLarge
+from app.core.errors import Forbidden, Invalid, NotFound, TooLarge, not_json
 from app.core.sample_policy import body_indices
 from app.core.security import Principal
 from app.core.time import now_ms
@@ -107,9 +107,7 @@ def bulk_items(raw: bytes, settings: Settings) -> list[Any]:
     try:
         body = json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise Invalid(
-            f"body is not JSON: {exc}", details=[{"loc": ["body"], "type": "json_invalid"}]
-        ) from exc
+        raise not_json(str(exc)) from exc
     if not isinstance(body, dict) or not isinstance(body.get("batches"), list):
         raise Invalid(
             'the body must be an object {"batches": [<ingest body>, ...]}',
