@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import shapely
+from shapely.errors import ShapelyError
 from shapely.geometry import shape
 from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
@@ -253,6 +254,10 @@ def parse_floor_map(doc: Any) -> FloorMap:
                 fmap.walls.append(geom)
             else:
                 fmap.barriers.append(geom)
+        except ShapelyError as exc:
+            # GEOS refuses to build it at all (a line of one point)
+            reason = str(exc).removeprefix("IllegalArgumentException: ")
+            problems.append(Problem(index, kind, f"invalid geometry: {reason}"))
         except (ValueError, TypeError, AttributeError) as exc:
             problems.append(Problem(index, kind, str(exc)))
     # an outline feature that failed has its own problem above: count it, not just the good ones

@@ -296,6 +296,36 @@ def test_zone_events_on_entering_and_leaving(client: TestClient, admin: dict, si
     assert events == {"enter": inside[0]["t"], "exit": after[0]["t"]}
 
 
+def test_a_device_jittering_at_a_doorway_gets_no_pair_shorter_than_the_dwell(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    device = f"{site_id}-door"
+    # 6 s in the Lab's doorway (x = 12), a second on each side in turn, then 4 s inside the
+    # Lab and 5 s back out by the wall
+    xs = ([11.7] * 5 + [12.3] * 5) * 3 + [14.0] * 20 + [11.0] * 25
+    fixes = [
+        {"t": T0 + 200 * k, "x": x, "y": 4.0, "floor_id": "G", "std": 0.05}
+        for k, x in enumerate(xs)
+    ]
+    url = f"/v1/ws/positions?site_id={site_id}&device_id={device}&key={ADMIN_KEY}"
+    with client.websocket_connect(url) as ws:
+        r = client.post(
+            "/v1/ingest?wait=true",
+            json={"device_id": device, "site_id": site_id, "uwb_fix": fixes},
+            headers=admin,
+        )
+        positions = r.json()["positions"]
+        messages = [ws.receive_json() for _ in range(len(positions) + 2)]
+    # the engine's positions did cross the zone's edge back and forth in the doorway
+    sides = [p["x"] >= 12 for p in positions if p["t"] < T0 + 6000]
+    assert sum(a != b for a, b in zip(sides, sides[1:], strict=False)) >= 3
+    zone = [m for m in messages if m["type"] == "zone"]
+    assert [m["event"] for m in zone] == ["enter", "exit"]
+    assert zone[1]["t"] - zone[0]["t"] >= 2000
+    # the stay that lasted: entered in the doorway's last second, left after 10 s
+    assert T0 + 5000 <= zone[0]["t"] <= T0 + 7000 and zone[1]["t"] >= T0 + 10_000
+
+
 def test_locator_sightings_reach_the_tag(client: TestClient, admin: dict, site_id: str) -> None:
     r = client.post(
         "/v1/ingest/locator?wait=true",
