@@ -17,7 +17,7 @@ def _settings(args: argparse.Namespace) -> Settings:
     """Return the settings of flags over ``LOCUS_*`` env; exit naming any bad one."""
     overrides = {
         key: getattr(args, key)
-        for key in ("host", "port", "database_url", "workers", "broker", "home")
+        for key in ("host", "port", "database_url", "workers", "broker", "home", "access_log")
         if getattr(args, key, None) is not None
     }
     try:
@@ -87,18 +87,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
             admin = create_key(db=db, role="admin", site_id=None, label="demo")
     engine.dispose()
     server = uvicorn.Server(
-        uvicorn.Config(create_app(settings), host=settings.host, port=settings.port)
+        uvicorn.Config(
+            create_app(settings),
+            host=settings.host,
+            port=settings.port,
+            access_log=settings.access_log,
+        )
     )
     stop = threading.Event()
-    base = f"http://{settings.host}:{settings.port}"
+    base = demo.base_url(settings.host, settings.port)
 
     def run_devices() -> None:
         while not server.started and not stop.wait(0.2):
             pass
         demo.install(base, admin)
-        print(
-            f"\nLocus demo: open {base}/ and sign in with this admin key:\n  {admin}\n", flush=True
-        )
+        # last, after the start-up lines, so it does not scroll away
+        print(demo.banner(base, admin), flush=True)
         demo.simulate(base, admin, stop=stop)
 
     threading.Thread(target=run_devices, name="demo-devices", daemon=True).start()
@@ -263,12 +267,22 @@ def _server_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--home", help="folder for local state (default ./var)")
 
 
+def _http_args(parser: argparse.ArgumentParser) -> None:
+    _server_args(parser)
+    parser.add_argument(
+        "--access-log",
+        action="store_true",
+        default=None,
+        help="log every HTTP request (default: off; warnings and errors always show)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the command-line parser."""
     parser = argparse.ArgumentParser(prog="locus", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     serve = commands.add_parser("serve", help="run the API and filter workers")
-    _server_args(serve)
+    _http_args(serve)
     serve.set_defaults(func=cmd_serve)
     worker = commands.add_parser("worker", help="run a filter worker node (Redis broker)")
     _server_args(worker)
@@ -315,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("rest", nargs=argparse.REMAINDER, help="options of that evaluation")
     evaluate.set_defaults(func=cmd_eval)
     demo = commands.add_parser("demo", help="serve with a demo site and simulated devices")
-    _server_args(demo)
+    _http_args(demo)
     demo.set_defaults(func=cmd_demo)
     return parser
 

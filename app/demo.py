@@ -114,6 +114,29 @@ def _post(http: httpx.Client, body: dict[str, Any]) -> None:
         log.warning("demo device %s: %s", body["device_id"], exc)
 
 
+def base_url(host: str, port: int) -> str:
+    """Return the URL a browser on this machine opens for a server bound to ``host``."""
+    shown = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+    return f"http://{shown}:{port}"
+
+
+def banner(base: str, key: str) -> str:
+    """Return the box the demo prints once it runs: where to look and the key to sign in."""
+    lines = [
+        "Locus demo is running.",
+        "",
+        f"  Dashboard   {base}/",
+        f"  Admin key   {key}",
+        f"  API docs    {base}/docs",
+        "",
+        "Sign in to the dashboard with the admin key. Ctrl-C stops the demo.",
+    ]
+    width = max(len(line) for line in lines)
+    rule = "─" * (width + 2)
+    body = "\n".join(f"│ {line.ljust(width)} │" for line in lines)
+    return f"\n╭{rule}╮\n{body}\n╰{rule}╯\n"
+
+
 def install(base_url: str, key: str) -> None:
     """Create the demo site and floor through the API (idempotent)."""
     with httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}) as http:
