@@ -55,8 +55,10 @@ def clone_environment(clone: Path) -> None:
     packages = next((venv / "lib").glob("python3*/site-packages"))
     (packages / "locus.pth").write_text(f"{clone}\n{sysconfig.get_paths()['purelib']}\n")
     script = venv / "bin" / "locus"
+    # as pip writes a console script: worker processes re-import it without running it
     script.write_text(
-        f"#!{venv}/bin/python\nimport sys\n\nfrom app.cli import main\n\nsys.exit(main())\n"
+        f"#!{venv}/bin/python\nimport sys\n\nfrom app.cli import main\n\n"
+        "if __name__ == '__main__':\n    sys.exit(main())\n"
     )
     script.chmod(0o755)
     # installed after pyproject.toml last changed, as a first run leaves it

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 
-
 QUIET = ("httpx", "httpcore", "alembic.runtime.plugins")
 """Loggers that say routine things at INFO: HTTP clients log every request (the demo's
 devices post every second), Alembic each of its plugins at every start. Their warnings
