@@ -102,8 +102,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             pass
         demo.install(base, admin)
         # last, after the start-up lines, so it does not scroll away
-        print(demo.banner(base, admin), flush=True)
-        demo.simulate(base, admin, stop=stop)
+        demo.simulate(
+            base, admin, stop=stop, on_running=lambda: print(demo.banner(base, admin), flush=True)
+        )
 
     threading.Thread(target=run_devices, name="demo-devices", daemon=True).start()
     try:
