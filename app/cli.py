@@ -31,7 +31,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.core.db import make_engine, make_sessionmaker, upgrade_database
-    from app.core.logging import configure_logging
+    from app.core.logging import configure_logging, quiet_connections
     from app.keys.bootstrap import announce_admin_key, bootstrap_admin
     from app.main import create_app
 
@@ -47,6 +47,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         engine.dispose()
     if key is not None:
         announce_admin_key(key)
+    if not settings.access_log:
+        quiet_connections()
     uvicorn.run(
         create_app(settings),
         host=settings.host,
@@ -65,7 +67,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from app import demo
     from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
-    from app.core.logging import configure_logging
+    from app.core.logging import configure_logging, quiet_connections
     from app.keys.bootstrap import bootstrap_admin
     from app.keys.service import create_key
     from app.main import create_app
@@ -86,6 +88,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         with session_scope(sessions) as db:
             admin = create_key(db=db, role="admin", site_id=None, label="demo")
     engine.dispose()
+    if not settings.access_log:
+        quiet_connections()
     server = uvicorn.Server(
         uvicorn.Config(
             create_app(settings),
