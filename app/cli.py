@@ -26,6 +26,22 @@ def _settings(args: argparse.Namespace) -> Settings:
         raise SystemExit(f"locus: invalid settings: {exc}") from None
 
 
+def _port_free(settings: Settings) -> None:
+    """Exit naming the port when something already listens on it (a demo left running)."""
+    import socket
+
+    with socket.socket() as probe:
+        # as uvicorn binds: connections of a previous run waiting out TIME_WAIT are no obstacle
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((settings.host, settings.port))
+        except OSError as exc:
+            raise SystemExit(
+                f"locus: cannot listen on {settings.host}:{settings.port}: {exc.strerror}. "
+                "Is another Locus (the demo?) running there? Stop it, or pass --port"
+            ) from None
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """Upgrade the schema, make sure an admin key exists, and serve the API with workers."""
     import uvicorn
@@ -37,6 +53,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     configure_logging()
     settings = _settings(args)
+    _port_free(settings)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     try:
@@ -76,6 +93,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     settings = _settings(args)
     if args.home is None:
         settings = settings.model_copy(update={"home": settings.home / "demo"})
+    _port_free(settings)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     sessions = make_sessionmaker(engine)
