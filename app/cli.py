@@ -17,7 +17,7 @@ def _settings(args: argparse.Namespace) -> Settings:
     """Return the settings of flags over ``LOCUS_*`` env; exit naming any bad one."""
     overrides = {
         key: getattr(args, key)
-        for key in ("host", "port", "database_url", "workers", "broker", "home")
+        for key in ("host", "port", "database_url", "workers", "broker", "home", "access_log")
         if getattr(args, key, None) is not None
     }
     try:
@@ -26,17 +26,34 @@ def _settings(args: argparse.Namespace) -> Settings:
         raise SystemExit(f"locus: invalid settings: {exc}") from None
 
 
+def _port_free(settings: Settings) -> None:
+    """Exit naming the port when something already listens on it (a demo left running)."""
+    import socket
+
+    with socket.socket() as probe:
+        # as uvicorn binds: connections of a previous run waiting out TIME_WAIT are no obstacle
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((settings.host, settings.port))
+        except OSError as exc:
+            raise SystemExit(
+                f"locus: cannot listen on {settings.host}:{settings.port}: {exc.strerror}. "
+                "Is another Locus (the demo?) running there? Stop it, or pass --port"
+            ) from None
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """Upgrade the schema, make sure an admin key exists, and serve the API with workers."""
     import uvicorn
 
     from app.core.db import make_engine, make_sessionmaker, upgrade_database
-    from app.core.logging import configure_logging
+    from app.core.logging import configure_logging, quiet_connections
     from app.keys.bootstrap import announce_admin_key, bootstrap_admin
     from app.main import create_app
 
     configure_logging()
     settings = _settings(args)
+    _port_free(settings)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     try:
@@ -47,6 +64,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         engine.dispose()
     if key is not None:
         announce_admin_key(key)
+    if not settings.access_log:
+        quiet_connections()
     uvicorn.run(
         create_app(settings),
         host=settings.host,
@@ -65,7 +84,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from app import demo
     from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
-    from app.core.logging import configure_logging
+    from app.core.logging import configure_logging, quiet_connections
     from app.keys.bootstrap import bootstrap_admin
     from app.keys.service import create_key
     from app.main import create_app
@@ -74,6 +93,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     settings = _settings(args)
     if args.home is None:
         settings = settings.model_copy(update={"home": settings.home / "demo"})
+    _port_free(settings)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
     sessions = make_sessionmaker(engine)
@@ -86,20 +106,27 @@ def cmd_demo(args: argparse.Namespace) -> int:
         with session_scope(sessions) as db:
             admin = create_key(db=db, role="admin", site_id=None, label="demo")
     engine.dispose()
+    if not settings.access_log:
+        quiet_connections()
     server = uvicorn.Server(
-        uvicorn.Config(create_app(settings), host=settings.host, port=settings.port)
+        uvicorn.Config(
+            create_app(settings),
+            host=settings.host,
+            port=settings.port,
+            access_log=settings.access_log,
+        )
     )
     stop = threading.Event()
-    base = f"http://{settings.host}:{settings.port}"
+    base = demo.base_url(settings.host, settings.port)
 
     def run_devices() -> None:
         while not server.started and not stop.wait(0.2):
             pass
         demo.install(base, admin)
-        print(
-            f"\nLocus demo: open {base}/ and sign in with this admin key:\n  {admin}\n", flush=True
+        # last, after the start-up lines, so it does not scroll away
+        demo.simulate(
+            base, admin, stop=stop, on_running=lambda: print(demo.banner(base, admin), flush=True)
         )
-        demo.simulate(base, admin, stop=stop)
 
     threading.Thread(target=run_devices, name="demo-devices", daemon=True).start()
     try:
@@ -263,12 +290,22 @@ def _server_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--home", help="folder for local state (default ./var)")
 
 
+def _http_args(parser: argparse.ArgumentParser) -> None:
+    _server_args(parser)
+    parser.add_argument(
+        "--access-log",
+        action="store_true",
+        default=None,
+        help="log every HTTP request (default: off; warnings and errors always show)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the command-line parser."""
     parser = argparse.ArgumentParser(prog="locus", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     serve = commands.add_parser("serve", help="run the API and filter workers")
-    _server_args(serve)
+    _http_args(serve)
     serve.set_defaults(func=cmd_serve)
     worker = commands.add_parser("worker", help="run a filter worker node (Redis broker)")
     _server_args(worker)
@@ -315,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("rest", nargs=argparse.REMAINDER, help="options of that evaluation")
     evaluate.set_defaults(func=cmd_eval)
     demo = commands.add_parser("demo", help="serve with a demo site and simulated devices")
-    _server_args(demo)
+    _http_args(demo)
     demo.set_defaults(func=cmd_demo)
     return parser
 

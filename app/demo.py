@@ -11,7 +11,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,8 +73,19 @@ class Walker:
         return np.array([np.interp(s, self.cumulative, self.points[:, k]) for k in range(2)])
 
 
-def simulate(base_url: str, key: str, *, stop: threading.Event, seed: int = 1) -> None:
-    """Post one batch a second per simulated device until ``stop`` is set."""
+def simulate(
+    base_url: str,
+    key: str,
+    *,
+    stop: threading.Event,
+    on_running: Callable[[], None] = lambda: None,
+    seed: int = 1,
+) -> None:
+    """Post one batch a second per simulated device until ``stop`` is set.
+
+    The first round waits for its positions, so the workers have loaded the site (and
+    said so) when ``on_running`` is called.
+    """
     doc = load_map()
     beacons = _emitters(doc, "transmitter")
     anchors = _emitters(doc, "anchor")
@@ -83,6 +94,7 @@ def simulate(base_url: str, key: str, *, stop: threading.Event, seed: int = 1) -
     rng = np.random.default_rng(seed)
     started = time.time()
     with httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}) as http:
+        first = True
         while not stop.wait(1.0):
             now = int(time.time() * 1000)
             elapsed = time.time() - started
@@ -96,7 +108,7 @@ def simulate(base_url: str, key: str, *, stop: threading.Event, seed: int = 1) -
                     if rssi > -95:
                         ble.append({"t": now, "id": b["id"], "rssi": round(float(rssi), 1)})
                 body = {"device_id": device, "site_id": SITE_ID, "ble": ble}
-                _post(http, body)
+                _post(http, body, wait=first)
             xy = np.append(tag.at(elapsed), 1.0)
             ranges = np.linalg.norm(xy - np.array([a["xyz"] for a in anchors]), axis=1)
             ranges += 0.05 * rng.standard_normal(len(anchors))
@@ -104,14 +116,40 @@ def simulate(base_url: str, key: str, *, stop: threading.Event, seed: int = 1) -
                 {"t": now, "anchor": a["id"], "range": round(float(r), 3), "std": 0.1}
                 for a, r in zip(anchors, ranges, strict=True)
             ]
-            _post(http, {"device_id": "tag-1", "site_id": SITE_ID, "uwb": uwb})
+            _post(http, {"device_id": "tag-1", "site_id": SITE_ID, "uwb": uwb}, wait=first)
+            if first:
+                on_running()
+                first = False
 
 
-def _post(http: httpx.Client, body: dict[str, Any]) -> None:
+def _post(http: httpx.Client, body: dict[str, Any], *, wait: bool) -> None:
     try:
-        http.post("/v1/ingest", json=body, timeout=5)
+        http.post("/v1/ingest", params={"wait": "true"} if wait else None, json=body, timeout=30)
     except httpx.HTTPError as exc:
         log.warning("demo device %s: %s", body["device_id"], exc)
+
+
+def base_url(host: str, port: int) -> str:
+    """Return the URL a browser on this machine opens for a server bound to ``host``."""
+    shown = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+    return f"http://{shown}:{port}"
+
+
+def banner(base: str, key: str) -> str:
+    """Return the box the demo prints once it runs: where to look and the key to sign in."""
+    lines = [
+        "Locus demo is running.",
+        "",
+        f"  Dashboard   {base}/",
+        f"  Admin key   {key}",
+        f"  API docs    {base}/docs",
+        "",
+        "Sign in to the dashboard with the admin key. Ctrl-C stops the demo.",
+    ]
+    width = max(len(line) for line in lines)
+    rule = "─" * (width + 2)
+    body = "\n".join(f"│ {line.ljust(width)} │" for line in lines)
+    return f"\n╭{rule}╮\n{body}\n╰{rule}╯\n"
 
 
 def install(base_url: str, key: str) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from fastapi import Depends, FastAPI
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core.config import Settings, get_settings
@@ -73,12 +74,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             await state.close()
 
-    app = FastAPI(
+    # /docs and /redoc with their scripts served from a package, not a CDN: servers on a
+    # site's network often have no internet. No validator badge either (it asks a website).
+    app = FastAPIOffline(
         title="Locus",
         version="1",
         summary="Real-time indoor location engine for many tags.",
         lifespan=lifespan,
         dependencies=[Depends(reject_unknown_query)],
+        swagger_ui_parameters={"validatorUrl": None},
     )
     install_error_handlers(app)
     install_openapi(app)

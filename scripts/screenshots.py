@@ -15,8 +15,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from playwright.sync_api import expect, sync_playwright
-
+CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
     "--headless",
     "--no-sandbox",
@@ -62,10 +61,21 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("docs"))
     parser.add_argument("--settle", type=float, default=15.0, help="seconds of live positions")
     args = parser.parse_args()
+    try:
+        # a test tool, not a dependency of the server: --help works without it
+        from playwright.sync_api import expect, sync_playwright
+    except ModuleNotFoundError:
+        raise SystemExit(
+            "screenshots.py drives Debian's Chromium with Playwright, a test tool: install it "
+            "with `.venv/bin/pip install -e '.[dev]'` (and Chromium with `apt-get install "
+            "chromium`)"
+        ) from None
+    if not Path(CHROMIUM).exists():
+        raise SystemExit(f"{CHROMIUM} is missing: `apt-get install chromium`")
     args.out.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as playwright:
         browser = playwright.chromium.launch(
-            executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS
+            executable_path=CHROMIUM, args=CHROMIUM_ARGS
         )
         page = browser.new_page(viewport={"width": 1440, "height": 860})
         page.goto(args.server + "/")

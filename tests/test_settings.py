@@ -4,6 +4,7 @@ message naming the setting and what it accepts, never echoing a password."""
 from __future__ import annotations
 
 import secrets
+import socket
 
 import pytest
 
@@ -123,3 +124,18 @@ def test_a_random_admin_key_is_accepted() -> None:
     key = secrets.token_urlsafe(32)
     assert Settings(admin_key=key).admin_key == key
     assert Settings(admin_key="").admin_key is None, "empty means: generate one"
+
+
+@pytest.mark.parametrize("command", ["serve", "demo"])
+def test_a_port_in_use_stops_the_start_saying_what_to_do(command: str, tmp_path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = str(taken.getsockname()[1])
+        with pytest.raises(SystemExit) as raised:
+            main([command, "--port", port, "--home", str(tmp_path)])
+    message = str(raised.value)
+    assert f"cannot listen on 127.0.0.1:{port}" in message
+    assert "the demo?" in message and "pass --port" in message
+    # nothing was started: no database was even created
+    assert not list(tmp_path.iterdir())

@@ -134,6 +134,20 @@ class Settings(BaseSettings):
     floor_map_max_bytes: int = Field(
         default=32 * MIB, ge=1, le=1024 * MIB, description="Largest floor-map upload (bytes)."
     )
+    floor_max_extent_m: float = Field(
+        default=3000.0,
+        gt=0,
+        le=100_000,
+        description="Widest floor map accepted (m, along x or y): a map drawn in another unit "
+        "is refused naming its size instead of being rasterised.",
+    )
+    floor_max_raster_cells: int = Field(
+        default=16_000_000,
+        ge=1,
+        le=1_000_000_000,
+        description="Largest occupancy raster of one floor (cells of raster_cell; 16 million "
+        "is 1 km × 1 km at 0.25 m), held by the API and every worker process.",
+    )
     survey_max_bytes: int = Field(
         default=256 * MIB, ge=1, le=4096 * MIB, description="Largest survey upload (bytes)."
     )
@@ -227,6 +241,14 @@ class Settings(BaseSettings):
         ge=0,
         le=DAY_MS,
         description="Measurement time between periodic device snapshots.",
+    )
+    zone_dwell_s: float = Field(
+        default=2.0,
+        ge=0,
+        le=3600,
+        description="Measurement time a device must stay inside a zone before its enter event, "
+        "and outside before its exit (each reported at the crossing's time), so a filter's "
+        "jitter at a doorway does not flicker; 0 reports every crossing.",
     )
     raster_cell: float = Field(default=0.25, gt=0, le=10, description="Floor raster cell (m).")
 

@@ -73,6 +73,12 @@ class DomainError(Exception):
         self.retry_after_s = retry_after_s
 
 
+class BadRequest(DomainError):
+    """The request cannot be read at all (its body is not JSON)."""
+
+    status, code = 400, "bad_request"
+
+
 class NotFound(DomainError):
     """The named resource does not exist (or is not visible to the caller)."""
 
@@ -134,6 +140,36 @@ def validation_details(errors: list[Any]) -> list[dict[str, Any]]:
     ]
 
 
+def not_json(reason: str) -> BadRequest:
+    """Return the 400 of a body that is not JSON, with the parser's reason."""
+    return BadRequest(
+        f"body is not valid JSON: {reason}",
+        code="invalid_json",
+        details=[{"loc": ["body"], "msg": reason, "type": "json_invalid"}],
+    )
+
+
+def validation_failed(errors: list[Any], message: str = "request failed validation") -> DomainError:
+    """Return the error of a body that failed validation: 400 when it is not JSON at all
+    (as most HTTP APIs answer), else 422 listing every fault."""
+    for error in errors:
+        if error.get("type") == "json_invalid":
+            reason = str(error.get("msg", "")).removeprefix("Invalid JSON: ")
+            if reason == "JSON decode error":
+                # FastAPI's own parse: the reason in ctx, the character's offset last in loc
+                ctx, loc = error.get("ctx") or {}, error.get("loc") or ("",)
+                reason = f"{ctx.get('error', reason)} (character {loc[-1]})"
+            return not_json(reason)
+    details = validation_details(errors)
+    if details:
+        # the first fault in the message itself: a client logging only the message learns it
+        first = details[0]
+        where = ".".join(p for p in first["loc"] if p != "body")
+        more = f" (and {len(details) - 1} more in details)" if len(details) > 1 else ""
+        message = f"{message}: {where + ': ' if where else ''}{first['msg']}{more}"
+    return Invalid(message, details=details)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Render every error, ours or the framework's, as the contract's error object."""
 
@@ -154,8 +190,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
-        details = validation_details(list(exc.errors()))
-        return JSONResponse(error_body("invalid", "request failed validation", details), 422)
+        error = validation_failed(list(exc.errors()))
+        return JSONResponse(error_body(error.code, error.message, error.details), error.status)
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception) -> JSONResponse:

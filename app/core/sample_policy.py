@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ValidationError
-from pydantic_core import ErrorDetails
+from pydantic_core import ErrorDetails, PydanticCustomError
 
 from app.core.errors import Invalid
 
@@ -41,6 +41,39 @@ MAX_T_MS = 10**14
 
 OTHER_UNITS = (("seconds", 1e-3), ("microseconds", 1e3), ("nanoseconds", 1e6))
 """Units a device clock is mistakenly sent in, with their count per millisecond."""
+
+
+def unit_of(t: float) -> str | None:
+    """Return the unit ``t`` reads as when it is a time from 2000 to 5138 in another unit
+    than milliseconds since the epoch (``"seconds"``, ...), else None."""
+    for unit, per_ms in OTHER_UNITS:
+        if MIN_T_MS * per_ms <= t < MAX_T_MS * per_ms:
+            return unit
+    return None
+
+
+def check_ms(t: int) -> int:
+    """Return ``t`` when it is milliseconds since the epoch from 2000 to 5138; else raise a
+    value error that says ``t`` is in milliseconds and, when it reads as another unit, which.
+
+    The error keeps pydantic's ``greater_than_equal``/``less_than_equal`` type, so one sample
+    with such a time is dropped like any impossible value rather than refusing its batch.
+    """
+    if MIN_T_MS <= t < MAX_T_MS:
+        return t
+    unit = unit_of(t)
+    if unit is not None:
+        message = f"t {t} looks like {unit} since the epoch; t must be milliseconds since the epoch"
+    elif t < MIN_T_MS:
+        message = (
+            f"t {t} is before 2000-01-01 ({MIN_T_MS}); t must be milliseconds since the epoch "
+            "from a clock that was set"
+        )
+    else:
+        message = f"t {t} is after the year 5138; t must be milliseconds since the epoch"
+    kind = "greater_than_equal" if t < MIN_T_MS else "less_than_equal"
+    raise PydanticCustomError(kind, message)
+
 
 MAX_REPORTED = 100
 """At most this many drops are listed in an answer; ``dropped_total`` gives the count."""
@@ -148,17 +181,17 @@ def check_time_units(times: np.ndarray) -> None:
     if times.size == 0:
         return
     median = _median(times)
-    for unit, per_ms in OTHER_UNITS:
-        if MIN_T_MS * per_ms <= median < MAX_T_MS * per_ms:
-            message = (
-                f"sample times look like {unit} since the epoch (median t {median:.0f}); "
-                "t must be milliseconds since the epoch"
-            )
-            raise Invalid(
-                message,
-                code="timestamp_units",
-                details=[{"loc": ["t"], "msg": message, "type": "timestamp_units"}],
-            )
+    unit = unit_of(median)
+    if unit is not None:
+        message = (
+            f"sample times look like {unit} since the epoch (median t {median:.0f}); "
+            "t must be milliseconds since the epoch"
+        )
+        raise Invalid(
+            message,
+            code="timestamp_units",
+            details=[{"loc": ["t"], "msg": message, "type": "timestamp_units"}],
+        )
 
 
 def _raw_times(data: Any) -> np.ndarray:

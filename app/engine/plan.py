@@ -16,6 +16,10 @@ import numpy as np
 from scipy import ndimage
 
 
+class NoFreeCell(ValueError):
+    """The walkable area covers no cell of the raster: nowhere to put a position."""
+
+
 @dataclass(frozen=True, eq=False)
 class FloorPlan:
     """Occupancy raster of one floor in its local metric frame.
@@ -47,7 +51,7 @@ class FloorPlan:
         """Build the derived lookup tables for a free-space raster."""
         free = np.ascontiguousarray(free, dtype=bool)
         if not free.any():
-            raise ValueError("floor plan has no free cell")
+            raise NoFreeCell("floor plan has no free cell")
         clearance = ndimage.distance_transform_edt(free).astype(np.float32) * cell
         # Distance transform of the blocked set gives, for every cell, the
         # index of the closest free cell: projection becomes one gather.

@@ -8,11 +8,12 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from app.core.errors import ApiError, TooLarge
+from app.core.errors import TooLarge, not_json
 from app.core.schemas import FloorIdPath
 from app.floors import service
 from app.floors.models import FloorRecord
 from app.floors.schemas import FloorSummary
+from app.geometry.extent import ExtentLimits
 from app.keys.deps import AdminDep, SiteReaderDep
 from app.sites.deps import SiteDep
 from app.state import SessionDep, SettingsDep
@@ -43,7 +44,7 @@ async def put_floor(
     try:
         doc: Any = json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ApiError(400, f"body is not JSON: {exc}") from exc
+        raise not_json(str(exc)) from exc
     existed = service.get_floor(db=db, site_id=site.id, floor_id=floor_id) is not None
     # Rasterising a large floor takes a fraction of a second: keep it off the loop.
     floor = await run_in_threadpool(
@@ -52,7 +53,11 @@ async def put_floor(
         site=site,
         floor_id=floor_id,
         doc=doc,
-        raster_cell=settings.raster_cell,
+        limits=ExtentLimits(
+            max_extent_m=settings.floor_max_extent_m,
+            max_raster_cells=settings.floor_max_raster_cells,
+            cell=settings.raster_cell,
+        ),
     )
     db.commit()
     response.status_code = 200 if existed else 201

@@ -9,8 +9,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.errors import Invalid, NotFound
+from app.engine.plan import NoFreeCell
 from app.floors.models import FloorRecord
-from app.geometry.floormap import FloorMapError, parse_floor_map, summarize
+from app.geometry.extent import ExtentLimits, extent_problems
+from app.geometry.floormap import FloorMapError, Problem, parse_floor_map, summarize
 from app.geometry.raster import floor_plan
 from app.sites.models import Site
 from app.sites.service import bump_map_version
@@ -37,19 +39,33 @@ def list_floors(*, db: Session, site_id: str) -> list[FloorRecord]:
     return list(rows)
 
 
+def _rejected(problems: list[Problem]) -> Invalid:
+    return Invalid(
+        f"floor map rejected: {len(problems)} problem(s)",
+        code="invalid_floor_map",
+        details=[p.as_dict() for p in problems],
+    )
+
+
 def put_floor(
-    *, db: Session, site: Site, floor_id: str, doc: dict[str, Any], raster_cell: float
+    *, db: Session, site: Site, floor_id: str, doc: dict[str, Any], limits: ExtentLimits
 ) -> FloorRecord:
-    """Validate ``doc`` (Invalid listing every problem), rasterise and store it."""
+    """Validate ``doc`` and its size (Invalid listing every problem), rasterise and store it."""
     try:
         fmap = parse_floor_map(doc)
     except FloorMapError as exc:
-        raise Invalid(
-            f"floor map rejected: {len(exc.problems)} problem(s)",
-            code="invalid_floor_map",
-            details=[p.as_dict() for p in exc.problems],
-        ) from exc
-    plan = floor_plan(fmap, cell=raster_cell)
+        raise _rejected(exc.problems) from exc
+    problems = extent_problems(doc, limits)
+    if problems:
+        raise _rejected(problems)
+    try:
+        plan = floor_plan(fmap, cell=limits.cell)
+    except NoFreeCell as exc:
+        reason = (
+            f"the walkable area (outline less barriers) covers no raster cell of {limits.cell:g} "
+            "m: it is narrower than a cell everywhere"
+        )
+        raise _rejected([Problem(None, "outline", reason)]) from exc
     summary = summarize(fmap) | {
         "raster": {
             "cell": plan.cell,

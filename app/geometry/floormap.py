@@ -8,10 +8,12 @@ feature index, its kind and the reason.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
 import shapely
+from shapely.errors import ShapelyError
 from shapely.geometry import shape
 from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
@@ -102,6 +104,30 @@ def _finite_coords(geometry: dict[str, Any]) -> bool:
     return walk(geometry.get("coordinates"))
 
 
+_VALIDITY = {
+    "Self-intersection": "its edges cross each other",
+    "Ring Self-intersection": "a ring touches itself",
+    "Hole lies outside shell": "a hole lies outside its polygon",
+    "Holes are nested": "a hole lies inside another hole",
+    "Interior is disconnected": "its holes cut it in pieces",
+    "Nested shells": "one of its polygons lies inside another",
+    "Duplicate Rings": "a ring repeats",
+    "Too few points": "a ring or line has too few distinct points",
+    "Invalid Coordinate": "a coordinate is not a number",
+    "Ring is not closed": "a ring does not end where it starts",
+}
+
+
+def _invalidity(geom: BaseGeometry) -> str:
+    """Return why a geometry is invalid in words, with the place shapely names."""
+    raw = explain_validity(geom)
+    match = re.fullmatch(r"(.+?)\[(\S+) (\S+)\]", raw)
+    if match is None or match.group(1) not in _VALIDITY:
+        return f"invalid geometry: {raw}"
+    x, y = (float(v) for v in match.group(2, 3))
+    return f"invalid geometry: {_VALIDITY[match.group(1)]} at ({x:g}, {y:g})"
+
+
 def _number(props: dict[str, Any], key: str) -> float | None:
     value = props.get(key)
     if value is None:
@@ -182,6 +208,7 @@ def parse_floor_map(doc: Any) -> FloorMap:
     level, height, name, georef = _collection_properties(doc.get("properties"), problems)
 
     outlines: list[BaseGeometry] = []
+    outline_features = 0
     fmap = FloorMap(level, height, name, georef, outline=shapely.Polygon())
     seen_ids: dict[str, int] = {}
     for index, feature in enumerate(features):
@@ -193,6 +220,7 @@ def parse_floor_map(doc: Any) -> FloorMap:
             if not isinstance(props, dict):
                 raise ValueError("'properties' must be an object")
             kind = props.get("kind")
+            outline_features += kind == "outline"
             if kind not in KINDS:
                 kind = None if not isinstance(kind, str) else kind
                 raise ValueError(f"'kind' must be one of {', '.join(KINDS)}")
@@ -214,7 +242,7 @@ def parse_floor_map(doc: Any) -> FloorMap:
             if geom.is_empty:
                 raise ValueError("geometry is empty")
             if not geom.is_valid:
-                raise ValueError(f"invalid geometry: {explain_validity(geom)}")
+                raise ValueError(_invalidity(geom))
             if kind in ("room", "zone"):
                 label = props.get("name")
                 if not isinstance(label, str) or not label.strip():
@@ -226,11 +254,16 @@ def parse_floor_map(doc: Any) -> FloorMap:
                 fmap.walls.append(geom)
             else:
                 fmap.barriers.append(geom)
+        except ShapelyError as exc:
+            # GEOS refuses to build it at all (a line of one point)
+            reason = str(exc).removeprefix("IllegalArgumentException: ")
+            problems.append(Problem(index, kind, f"invalid geometry: {reason}"))
         except (ValueError, TypeError, AttributeError) as exc:
             problems.append(Problem(index, kind, str(exc)))
-    if len(outlines) != 1:
+    # an outline feature that failed has its own problem above: count it, not just the good ones
+    if outline_features != 1:
         problems.append(
-            Problem(None, "outline", f"exactly one outline is required, found {len(outlines)}")
+            Problem(None, "outline", f"exactly one outline is required, found {outline_features}")
         )
     if problems:
         raise FloorMapError(problems)

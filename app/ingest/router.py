@@ -19,10 +19,9 @@ from app.core.errors import (
     ApiError,
     DomainError,
     Forbidden,
-    Invalid,
     TooLarge,
     error_body,
-    validation_details,
+    validation_failed,
 )
 from app.core.openapi import json_body
 from app.core.sample_policy import report
@@ -60,9 +59,7 @@ def _parse(model: type[M], raw: bytes | str) -> M:
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:
-        raise Invalid(
-            "request failed validation", details=validation_details(exc.errors(include_url=False))
-        ) from exc
+        raise validation_failed(exc.errors(include_url=False)) from exc
 
 
 def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[str, Any]]:

@@ -8,15 +8,20 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictInt, model_validator
 
-from app.core.sample_policy import MIN_T_MS
+from app.core.sample_policy import MAX_T_MS, MIN_T_MS, check_ms
 from app.core.schemas import DeviceIdentifier, DroppedSample, Identifier
 from app.positions.schemas import Position
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Rssi = Annotated[float, Field(ge=-150, le=0, allow_inf_nan=False)]
-Time = Annotated[StrictInt, Field(ge=MIN_T_MS, le=2**53)]
+Time = Annotated[
+    StrictInt,
+    AfterValidator(check_ms),
+    Field(json_schema_extra={"minimum": MIN_T_MS, "exclusiveMaximum": MAX_T_MS}),
+]
+"""Milliseconds since the epoch; a time in seconds or microseconds is refused, naming its unit."""
 TxId = Annotated[str, Field(min_length=1, max_length=100)]
 
 

@@ -8,7 +8,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from app.core.config import Settings
-from app.core.errors import Forbidden, Invalid, NotFound, TooLarge, validation_details
+from app.core.errors import Forbidden, Invalid, NotFound, TooLarge, not_json, validation_failed
 from app.core.sample_policy import body_indices, validate_screened
 from app.core.security import Principal
 from app.core.time import now_ms
@@ -44,9 +44,7 @@ def screen_batch(raw: bytes | str, settings: Settings) -> tuple[IngestBatch, lis
             IngestBatch, raw, SAMPLE_MODELS, max_offset_ms=round(settings.time_outlier_s * 1000)
         )
     except ValidationError as exc:
-        raise Invalid(
-            "request failed validation", details=validation_details(exc.errors(include_url=False))
-        ) from exc
+        raise validation_failed(exc.errors(include_url=False)) from exc
     wifi, stale = drop_stale_wifi(batch.wifi, settings.wifi_max_age_ms, drops)
     if stale:
         if len(wifi) + batch.sample_count - len(batch.wifi) == 0:
@@ -137,9 +135,7 @@ def bulk_items(raw: bytes, settings: Settings) -> list[Any]:
     try:
         body = json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise Invalid(
-            f"body is not JSON: {exc}", details=[{"loc": ["body"], "type": "json_invalid"}]
-        ) from exc
+        raise not_json(str(exc)) from exc
     if not isinstance(body, dict) or not isinstance(body.get("batches"), list):
         raise Invalid(
             'the body must be an object {"batches": [<ingest body>, ...]}',

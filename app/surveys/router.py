@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from app.core.errors import Invalid, TooLarge, validation_details
+from app.core.errors import TooLarge, validation_failed
 from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
 from app.core.schemas import LimitQuery, OffsetQuery, Page
@@ -44,9 +44,8 @@ async def create_survey(
             anchors=("waypoints",),
         )
     except ValidationError as exc:
-        raise Invalid(
-            "survey failed validation", details=validation_details(exc.errors(include_url=False))
-        ) from exc
+        errors = exc.errors(include_url=False)
+        raise validation_failed(errors, "survey failed validation") from exc
     wifi, stale = drop_stale_wifi(body.wifi, settings.wifi_max_age_ms, drops)
     body = body.model_copy(update={"wifi": wifi})
     drops += stale

@@ -1,7 +1,8 @@
 // Live view: the site's position stream over a WebSocket, markers on the plan for the
 // devices on the shown floor, a device list with last-seen ages, and zone events.
 
-import { DeviceMarker, methodColour } from "./plan.js";
+import { deviceColour, shapeIcon } from "./devices.js";
+import { DeviceMarker } from "./plan.js";
 
 const TRAIL_LENGTH = 20;
 const STALE_AFTER_MS = 30_000;
@@ -161,7 +162,7 @@ export class LiveView {
       this.els.devices.insertBefore(row, next ?? null);
     }
     const p = device.last;
-    device.row.querySelector(".swatch").style.background = methodColour(p.method);
+    device.row.querySelector(".swatch").replaceChildren(shapeIcon(p.method, deviceColour(id)));
     const elsewhere = p.floor_id === this.floorId ? "" : ` · floor ${p.floor_id ?? "?"}`;
     device.row.querySelector(".meta").textContent =
       `${p.method} · ±${p.accuracy.toFixed(1)} m${elsewhere}`;

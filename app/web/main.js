@@ -4,9 +4,11 @@
 import { AccuracyOverlay } from "./accuracy.js";
 import { AdminView } from "./admin.js";
 import { Api, ApiError, forgetKey, storedKey, storeKey } from "./api.js";
+import { METHOD_SHAPES, shapeIcon } from "./devices.js";
 import { LiveView } from "./live.js";
-import { METHOD_COLOURS, PlanView } from "./plan.js";
+import { PlanView } from "./plan.js";
 import { ReplayView } from "./replay.js";
+import { WallIndex } from "./walls.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -153,11 +155,13 @@ class Dashboard {
       const doc = await this.api.floor(this.siteId, floorId);
       if (selection !== this.selection) return;
       const { bounds } = this.plan.drawMap("map", doc);
+      this.plan.walls = new WallIndex(doc);
       this.plan.setBounds(bounds);
       svg.dataset.floor = floorId;
       $("plan-empty").hidden = true;
     } else {
       this.plan.clear("map");
+      this.plan.walls = null;
       delete svg.dataset.floor;
     }
     this.live.setFloor(floorId);
@@ -189,13 +193,11 @@ class Dashboard {
   }
 }
 
+/** List the marker shape of each method (each device has its own colour). */
 function buildLegend(list) {
-  for (const [method, colour] of Object.entries(METHOD_COLOURS)) {
+  for (const method of Object.keys(METHOD_SHAPES)) {
     const item = document.createElement("li");
-    const swatch = document.createElement("span");
-    swatch.className = "swatch";
-    swatch.style.background = colour;
-    item.append(swatch, method);
+    item.append(shapeIcon(method, "#475569"), method);
     list.append(item);
   }
 }

@@ -6,6 +6,9 @@
 // screen group holds symbols and labels that keep their size in pixels: each is
 // pinned to a world point (data-x, data-y) and moved whenever the view changes.
 
+import { deviceColour, methodShape } from "./devices.js";
+import { brokenPath } from "./walls.js";
+
 const NS = "http://www.w3.org/2000/svg";
 // The heatmap lies over the map's floor and under its walls' ink (multiplied, see CSS).
 const LAYERS = ["map", "heatmap", "preview", "replay", "live"];
@@ -21,20 +24,6 @@ const SYMBOLS = {
 const PAD = { top: 68, right: 28, bottom: 76, left: 28 };
 const MIN_SCALE = 0.05; // px per metre
 const MAX_SCALE = 2000;
-
-export const METHOD_COLOURS = {
-  pf: "#2563eb",
-  hmm: "#7c3aed",
-  ekf: "#16a34a",
-  lsq: "#ea580c",
-  trackfit: "#db2777",
-  centroid: "#0891b2",
-};
-const OTHER_METHOD = "#475569";
-
-export function methodColour(method) {
-  return METHOD_COLOURS[method] ?? OTHER_METHOD;
-}
 
 /** Create an SVG element with attributes, appended to `parent` when given. */
 export function svgElement(tag, attrs = {}, parent = null) {
@@ -54,6 +43,7 @@ export class PlanView {
     this.userMoved = false;
     this.pending = false;
     this.features = {};
+    this.walls = null; // the shown floor's WallIndex: trails are not drawn through walls
     this.#defs();
     this.world = svgElement("g", { class: "world" }, svg);
     this.screen = svgElement("g", { class: "screen" }, svg);
@@ -311,30 +301,35 @@ export class PlanView {
   }
 }
 
-/** A device on the plan: trail and accuracy circle in metres, marker and heading in pixels. */
+/**
+ * A device on the plan: trail and accuracy circle in metres, marker and heading in pixels.
+ * Its colour is the device's own; the marker's shape says which method placed it.
+ */
 export class DeviceMarker {
   constructor(plan, layerName, deviceId) {
     const { world, screen } = plan.layer(layerName);
     this.plan = plan;
-    this.trail = svgElement("polyline", { class: "trail" }, world);
+    this.trail = svgElement("path", { class: "trail", "data-device": deviceId }, world);
     this.circle = svgElement("circle", { class: "accuracy" }, world);
     this.node = svgElement("g", { class: "device", "data-device": deviceId }, screen);
     const arrow = "M0,-20L5.5,-10.5L-5.5,-10.5Z";
     this.arrow = svgElement("path", { class: "heading", d: arrow }, this.node);
-    this.dot = svgElement("circle", { class: "dot", r: 6.5 }, this.node);
+    this.dot = svgElement("path", { class: "dot" }, this.node);
     const label = svgElement("text", { class: "device-label", x: 10, y: 4 }, this.node);
     label.textContent = deviceId;
+    const colour = deviceColour(deviceId);
+    for (const node of [this.node, this.trail, this.circle]) {
+      node.style.setProperty("--colour", colour);
+    }
   }
 
   /** Draw the position message `p` with the recent positions `trail` ([[x, y], ...]). */
   update(p, trail) {
-    const colour = methodColour(p.method);
-    this.node.style.setProperty("--colour", colour);
-    this.trail.style.setProperty("--colour", colour);
-    this.circle.style.setProperty("--colour", colour);
     this.node.dataset.method = p.method;
     this.node.dataset.t = p.t;
-    this.trail.setAttribute("points", trail.map(([x, y]) => `${x},${y}`).join(" "));
+    this.dot.setAttribute("d", methodShape(p.method));
+    // the engine's path as it came, the pen lifted where a leg would cross a wall
+    this.trail.setAttribute("d", brokenPath(trail, this.plan.walls));
     this.circle.setAttribute("cx", p.x);
     this.circle.setAttribute("cy", p.y);
     this.circle.setAttribute("r", Math.max(p.accuracy, 0));

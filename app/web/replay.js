@@ -1,6 +1,7 @@
 // Replay view: a device's stored positions over a time range, played back on the plan.
 
 import { DeviceMarker, svgElement } from "./plan.js";
+import { brokenPath } from "./walls.js";
 
 const TRAIL_LENGTH = 20;
 const DEFAULT_RANGE_MS = 15 * 60_000;
@@ -121,7 +122,8 @@ export class ReplayView {
     this.els.play.textContent = "Play";
   }
 
-  /** Draw the whole recording's path on the shown floor, one polyline per stay on it. */
+  /** Draw the whole recording's path on the shown floor, one run per stay on it, the pen
+   * lifted where a leg would cross a wall. */
   #drawPath() {
     const { world } = this.plan.clear("replay");
     this.marker = null;
@@ -133,11 +135,10 @@ export class ReplayView {
         continue;
       }
       if (!run) runs.push((run = []));
-      run.push(`${p.x},${p.y}`);
+      run.push([p.x, p.y]);
     }
-    for (const points of runs) {
-      svgElement("polyline", { class: "replay-path", points: points.join(" ") }, world);
-    }
+    const d = runs.map((points) => brokenPath(points, this.plan.walls)).join("");
+    if (d) svgElement("path", { class: "replay-path", d }, world);
   }
 
   #drawMarker() {

@@ -20,6 +20,7 @@ from app.workers.trackers import (
     make_tracker,
     radio_kind,
 )
+from app.workers.zones import ZoneTracker
 
 Sample = dict[str, Any]
 Message = dict[str, Any]
@@ -69,17 +70,20 @@ class DeviceSession:
     network are still used in time order. Older arrivals are counted late.
 
     The session reads no clock: its owner passes the wall time (``now``, epoch
-    milliseconds) to the calls that need it.
+    milliseconds) to the calls that need it. Zone events wait ``zone_dwell_ms``
+    of measurement time on the new side of a zone's edge (``ZoneTracker``).
     """
 
-    def __init__(self, *, device_id: str, engines: SiteEngines, now: int) -> None:
+    def __init__(
+        self, *, device_id: str, engines: SiteEngines, now: int, zone_dwell_ms: int = 0
+    ) -> None:
         self.device_id = device_id
         self.engines = engines
         self.tracker: DeviceTracker | None = None
         self.processed_t = -1
         self.processed_wifi_t = -1
         self.max_t = -1
-        self.zones: frozenset[str] = frozenset()
+        self.zones = ZoneTracker(zone_dwell_ms)
         self.buffer: list[tuple[int, str, Sample]] = []
         self.seen: set[int] = set()
         self.snapshot_t = -1
@@ -195,15 +199,15 @@ class DeviceSession:
         return positions, events
 
     def _zone_events(self, estimate: Estimate) -> list[Message]:
-        """Return enter/exit events for the zones this estimate moved into or out of."""
-        if not self.site.zones:
+        """Return the enter/exit events this estimate confirms, each at its crossing time."""
+        if not self.site.zones and not self.zones.inside:
             return []
         inside = frozenset(
             z.name
             for z in self.site.zones
             if z.floor == estimate.floor and z.polygon.contains(Point(estimate.x, estimate.y))
         )
-        events = [
+        return [
             {
                 "type": "zone",
                 "event": event,
@@ -211,13 +215,10 @@ class DeviceSession:
                 "device_id": self.device_id,
                 "site_id": self.site.site_id,
                 "floor_id": self.site.floor_ids[estimate.floor],
-                "t": estimate.t,
+                "t": t,
             }
-            for event, names in (("exit", self.zones - inside), ("enter", inside - self.zones))
-            for name in sorted(names)
+            for event, name, t in self.zones.update(int(estimate.t), inside)
         ]
-        self.zones = inside
-        return events
 
     def _position(self, estimate: Estimate, now: int) -> Message:
         """Return the API's position message for an estimate computed at ``now``."""
@@ -253,7 +254,7 @@ class DeviceSession:
             "emitted_t": self.emitted_t,
             "smoothed_t": self.smoothed_t,
             "unflushed": self.unflushed,
-            "zones": sorted(self.zones),
+            **self.zones.snapshot(),
             "kinds": sorted(self.kinds),
             "buffer": json.dumps([list(item) for item in self.buffer]),
         }
@@ -274,7 +275,7 @@ class DeviceSession:
         self.emitted_t = int(state.get("emitted_t", -1))
         self.smoothed_t = int(state.get("smoothed_t", -1))
         self.unflushed = bool(state.get("unflushed", False))
-        self.zones = frozenset(str(z) for z in state.get("zones", ()))
+        self.zones.restore(state)
         self.kinds = {str(k) for k in state.get("kinds", ())}
         self.buffer = [(int(t), str(k), s) for t, k, s in json.loads(state.get("buffer", "[]"))]
         self.seen = {_key(k, s) for _, k, s in self.buffer}

@@ -92,7 +92,12 @@ class Shard:
                 # the map changed: rebuild the filter on the new site from its own state
                 device.use_site(engines)
             return device
-        device = DeviceSession(device_id=device_id, engines=engines, now=now)
+        device = DeviceSession(
+            device_id=device_id,
+            engines=engines,
+            now=now,
+            zone_dwell_ms=round(self.settings.zone_dwell_s * 1000),
+        )
         stored = self.store.load(db, device.key)
         if stored is not None:
             device.restore(snapshots.decode(stored))

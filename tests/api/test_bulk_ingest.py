@@ -118,7 +118,7 @@ def _samples(n: int, site: str) -> dict[str, Any]:
 @pytest.mark.parametrize(
     ("name", "body", "status", "says"),
     [
-        ("not JSON", b"{batches", 422, "not JSON"),
+        ("not JSON", b"{batches", 400, "not valid JSON"),
         ("no batches", json.dumps({"batch": []}).encode(), 422, '{"batches"'),
         ("batches not a list", json.dumps({"batches": {}}).encode(), 422, '{"batches"'),
         ("a list, not an object", json.dumps([{}]).encode(), 422, '{"batches"'),

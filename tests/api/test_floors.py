@@ -170,3 +170,68 @@ def test_site_update_keeps_floors(client: TestClient, admin: dict, site_id: str)
     assert client.get(f"/v1/sites/{site_id}/floors/G", headers=admin).status_code == 200
     doc = copy.deepcopy(floor_doc())
     assert client.put(f"/v1/sites/{site_id}/floors/G", json=doc, headers=admin).status_code == 200
+
+
+def _outline(ring: list[list[float]]) -> dict:
+    doc = floor_doc()
+    doc["features"][0]["geometry"] = {"type": "Polygon", "coordinates": [ring]}
+    return doc
+
+
+def _box(x0: float, y0: float, x1: float, y1: float) -> list[list[float]]:
+    return [[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]
+
+
+FAR_WALL = _feature("wall", {"type": "LineString", "coordinates": [[5, 5], [90_000, 5]]})
+
+# A map in the wrong unit or of the wrong size: each named at its feature, never a 500.
+MISTAKES: dict[str, tuple[dict, int | None, tuple[str, ...]]] = {
+    "outline in degrees": (
+        _outline(_box(13.4050, 52.5200, 13.4056, 52.5203)),
+        0,
+        ("look like longitude/latitude degrees", "floor maps are in metres", "'georef'"),
+    ),
+    "outline 100 km across": (
+        _outline(_box(0, 0, 100_000, 100_000)),
+        0,
+        ("100,000 m × 100,000 m", "larger than the limit of 3,000 m", "LOCUS_FLOOR_MAX_EXTENT_M"),
+    ),
+    "outline over the raster budget": (
+        _outline(_box(0, 0, 1500, 1500)),
+        0,
+        ("raster cells of 0.25 m", "LOCUS_FLOOR_MAX_RASTER_CELLS"),
+    ),
+    "outline of a few centimetres": (
+        _outline(_box(0, 0, 0.4, 0.2)),
+        0,
+        ("only 0.4 m × 0.2 m across", "in metres"),
+    ),
+    "outline thinner than a raster cell": (
+        _outline(_box(0, 0, 20, 0.1)),
+        None,
+        ("covers no raster cell of 0.25 m",),
+    ),
+    "wall 90 km away": (_with(FAR_WALL), 6, ("90,000", "LOCUS_FLOOR_MAX_EXTENT_M")),
+    "self-intersecting outline": (
+        _outline([[0, 0], [30, 0], [0, 20], [30, 20], [0, 0]]),
+        0,
+        ("invalid geometry: its edges cross each other at (15, 10)",),
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MISTAKES))
+def test_a_map_of_the_wrong_unit_or_size_is_named_as_such(
+    client: TestClient, admin: dict, site_id: str, case: str
+) -> None:
+    doc, index, says = MISTAKES[case]
+    before = _state(client, site_id, admin)
+    r = client.put(f"/v1/sites/{site_id}/floors/G", json=doc, headers=admin)
+    assert r.status_code == 422, r.text
+    details = r.json()["error"]["details"]
+    # one problem, the real one: no "found 0 outlines" after an outline that failed
+    assert len(details) == 1, details
+    assert details[0]["index"] == index
+    for phrase in says:
+        assert phrase in details[0]["reason"]
+    assert _state(client, site_id, admin) == before

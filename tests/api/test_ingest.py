@@ -37,7 +37,7 @@ def _bad_bodies(site: str) -> dict[str, tuple[str | bytes, int]]:
     return {
         "rssi as string": (json.dumps(good).replace("-50", '"loud"', 1), 422),
         "missing device_id": (json.dumps({k: v for k, v in good.items() if k != "device_id"}), 422),
-        "every sample impossible": (json.dumps(good).replace("-5", "+5"), 422),
+        "every sample impossible": (json.dumps(good).replace('"rssi": -', '"rssi": '), 422),
         "float time": (json.dumps(good).replace(str(T0), f"{T0}.5", 1), 422),
         "time before 2000": (json.dumps(batch(site, "bad-dev", t0=1000)), 422),
         "far future time": (json.dumps(batch(site, "bad-dev", t0=far_future)), 422),
@@ -63,7 +63,7 @@ def _bad_bodies(site: str) -> dict[str, tuple[str | bytes, int]]:
             422,
         ),
         "unknown field": (json.dumps(good | {"gps": []}), 422),
-        "not json": (b"{device_id: 1", 422),
+        "not json": (b"{device_id: 1", 400),
         "too many samples": (json.dumps(huge), 413),
         "body over 1 MiB": (
             json.dumps(good | {"device_id": "x" * 10}).replace(
@@ -271,10 +271,11 @@ def test_history_is_ascending_and_paginated(client: TestClient, admin: dict, sit
 
 def test_zone_events_on_entering_and_leaving(client: TestClient, admin: dict, site_id: str) -> None:
     device = f"{site_id}-zone"
-    # a tag walking east at 1 m/s along y = 4, through the Lab zone (12 ≤ x ≤ 16)
+    # a tag walking east at 1.25 m/s along y = 4 through the Lab zone (12 ≤ x ≤ 16): 3 s in
+    # it and 3 s beyond it, each longer than the zone dwell time (2 s)
     fixes = [
-        {"t": T0 + 200 * k, "x": 10.5 + 0.2 * k, "y": 4.0, "floor_id": "G", "std": 0.1}
-        for k in range(40)
+        {"t": T0 + 200 * k, "x": 10.5 + 0.25 * k, "y": 4.0, "floor_id": "G", "std": 0.1}
+        for k in range(38)
     ]
     url = f"/v1/ws/positions?site_id={site_id}&key={ADMIN_KEY}"
     with client.websocket_connect(url) as ws:
@@ -288,9 +289,41 @@ def test_zone_events_on_entering_and_leaving(client: TestClient, admin: dict, si
         messages = [ws.receive_json() for _ in range(len(positions) + 2)]
     zone = [(m["event"], m["zone"]) for m in messages if m["type"] == "zone"]
     assert zone == [("enter", "Lab"), ("exit", "Lab")]
+    # each reported at the crossing, not when the dwell confirmed it
     inside = [p for p in positions if 12 <= p["x"] <= 16]
-    entered = next(m["t"] for m in messages if m["type"] == "zone" and m["event"] == "enter")
-    assert entered == inside[0]["t"]
+    after = [p for p in positions if p["x"] > 16]
+    events = {m["event"]: m["t"] for m in messages if m["type"] == "zone"}
+    assert events == {"enter": inside[0]["t"], "exit": after[0]["t"]}
+
+
+def test_a_device_jittering_at_a_doorway_gets_no_pair_shorter_than_the_dwell(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    device = f"{site_id}-door"
+    # 6 s in the Lab's doorway (x = 12), a second on each side in turn, then 4 s inside the
+    # Lab and 5 s back out by the wall
+    xs = ([11.7] * 5 + [12.3] * 5) * 3 + [14.0] * 20 + [11.0] * 25
+    fixes = [
+        {"t": T0 + 200 * k, "x": x, "y": 4.0, "floor_id": "G", "std": 0.05}
+        for k, x in enumerate(xs)
+    ]
+    url = f"/v1/ws/positions?site_id={site_id}&device_id={device}&key={ADMIN_KEY}"
+    with client.websocket_connect(url) as ws:
+        r = client.post(
+            "/v1/ingest?wait=true",
+            json={"device_id": device, "site_id": site_id, "uwb_fix": fixes},
+            headers=admin,
+        )
+        positions = r.json()["positions"]
+        messages = [ws.receive_json() for _ in range(len(positions) + 2)]
+    # the engine's positions did cross the zone's edge back and forth in the doorway
+    sides = [p["x"] >= 12 for p in positions if p["t"] < T0 + 6000]
+    assert sum(a != b for a, b in zip(sides, sides[1:], strict=False)) >= 3
+    zone = [m for m in messages if m["type"] == "zone"]
+    assert [m["event"] for m in zone] == ["enter", "exit"]
+    assert zone[1]["t"] - zone[0]["t"] >= 2000
+    # the stay that lasted: entered in the doorway's last second, left after 10 s
+    assert T0 + 5000 <= zone[0]["t"] <= T0 + 7000 and zone[1]["t"] >= T0 + 10_000
 
 
 def test_locator_sightings_reach_the_tag(client: TestClient, admin: dict, site_id: str) -> None:

@@ -8,64 +8,23 @@ import json
 import re
 import time
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-from playwright.sync_api import Browser, Page, WebSocketRoute, expect, sync_playwright
+import shapely
+from playwright.sync_api import Page, WebSocketRoute, expect
 
+from app.demo import load_map
+from app.geometry.floormap import parse_floor_map
 from tests.conftest import ADMIN_KEY, LiveServer, floor_doc
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
 BOWTIE = {"type": "Polygon", "coordinates": [[[2, 2], [6, 6], [6, 2], [2, 6], [2, 2]]]}
 SQUARE = {"type": "Polygon", "coordinates": [[[3, 3], [5, 3], [5, 5], [3, 5], [3, 3]]]}
 
 pytestmark = pytest.mark.browser
-
-
-@pytest.fixture(scope="module")
-def server(new_database: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    """One real server for the module (one worker process: the machine has two cores)."""
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} is not installed (scripts/test.sh installs it)")
-    live = LiveServer(database_url=new_database(), home=tmp_path_factory.mktemp("dash"), workers=1)
-    yield live
-    live.stop()
-
-
-@pytest.fixture(scope="module")
-def browser(server: LiveServer) -> Iterator[Browser]:
-    """Debian's Chromium driven by Playwright (no browser download)."""
-    with sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        yield chromium
-        chromium.close()
-
-
-@pytest.fixture
-def page(browser: Browser) -> Iterator[Page]:
-    """A fresh tab (own sessionStorage) failing the test on any uncaught script error."""
-    context = browser.new_context(viewport={"width": 1280, "height": 800})
-    tab = context.new_page()
-    errors: list[str] = []
-    tab.on("pageerror", lambda exc: errors.append(str(exc)))
-    expect.set_options(timeout=10_000)
-    yield tab
-    context.close()
-    assert errors == []
 
 
 @pytest.fixture
@@ -169,16 +128,19 @@ def test_floor_is_drawn_and_live_marker_follows_positions(
     # the marker sits where the plan's transform puts (2, 5), y pointing up the screen
     assert before == pytest.approx((k * 2.0 + tx, ty - k * 5.0), abs=0.06)
 
-    post_fixes(server, site, "tag-7", [(t0 + 3000, 6.0, 5.0), (t0 + 6000, 14.0, 4.0)])
-    expect(page.locator(marker)).to_have_attribute("data-x", "14")
+    # into the Lab, and still there after the zone dwell time (2 s)
+    walk = [(t0 + 3000, 6.0, 5.0), (t0 + 6000, 14.0, 4.0), (t0 + 9000, 14.0, 4.0)]
+    post_fixes(server, site, "tag-7", walk)
+    expect(page.locator(marker)).to_have_attribute("data-t", str(t0 + 9000))
     after = marker_screen(page, marker)
     k, tx, ty = view_transform(page)
     assert after == pytest.approx((k * 14.0 + tx, ty - k * 4.0), abs=0.06)
     # moved 12 m east and 1 m south: right on the screen, and down
     assert after[0] - before[0] == pytest.approx(12 * k, abs=0.1)
     assert after[1] - before[1] == pytest.approx(1 * k, abs=0.1)
-    trail = page.locator('#plan [data-layer="live"] polyline.trail')
-    expect(trail).to_have_attribute("points", "2,5 6,5 14,4")
+    # the engine's path, the pen lifted over the leg from (6, 5) to (14, 4) through the wall
+    trail = page.locator('#plan [data-layer="live"] path.trail')
+    expect(trail).to_have_attribute("d", "M2,5L6,5M14,4L14,4")
     expect(page.locator('#devices li[data-device="tag-7"] .age')).to_contain_text("s ago")
     entered = page.locator('#zone-events li[data-event="enter"]')
     expect(entered).to_contain_text("Lab")
@@ -328,8 +290,8 @@ def test_replay_plays_a_device_history(page: Page, server: LiveServer, site: str
     expect(page.locator("#replay-status")).to_contain_text("5 positions of walker")
     marker = '#plan [data-layer="replay"] .device[data-device="walker"]'
     expect(page.locator(marker)).to_have_attribute("data-x", "2")
-    expect(page.locator('#plan [data-layer="replay"] polyline.replay-path')).to_have_attribute(
-        "points", "2,8.5 4,8.5 6,8.5 8,8.5 10,8.5"
+    expect(page.locator('#plan [data-layer="replay"] path.replay-path')).to_have_attribute(
+        "d", "M2,8.5L4,8.5L6,8.5L8,8.5L10,8.5"
     )
     page.select_option("#replay-speed", "60")
     page.click("#replay-play")
@@ -343,3 +305,115 @@ def test_viewer_key_sees_no_admin_view(page: Page, server: LiveServer, site: str
     expect(page.locator("#role")).to_have_text("viewer")
     expect(page.locator("#tab-admin")).to_be_hidden()
     expect(page.locator("#site option")).to_have_count(1)
+
+
+def device_colours(page: Page) -> dict[str, str]:
+    """Return each live device's colour (its marker's ``--colour``)."""
+    return page.evaluate(
+        """() => Object.fromEntries(
+          [...document.querySelectorAll('#plan [data-layer="live"] .device')].map((n) =>
+            [n.dataset.device, n.style.getPropertyValue("--colour")]))"""
+    )
+
+
+def test_each_device_has_its_own_colour_and_its_method_a_shape(
+    page: Page, server: LiveServer, site: str
+) -> None:
+    sign_in(page, server, ADMIN_KEY, site)
+    t0 = int(time.time() * 1000)
+    phones = {"phone-1": (2.0, 5.0), "phone-2": (6.0, 5.0), "phone-3": (3.0, 3.0)}
+    for device, (x, y) in phones.items():
+        post_fixes(server, site, device, [(t0, x, y)])
+    fix = {"t": t0, "x": 14.0, "y": 4.0, "floor_id": "G", "std": 0.1}
+    r = httpx.post(
+        f"{server.url}/v1/ingest?wait=true",
+        json={"device_id": "tag-1", "site_id": site, "uwb_fix": [fix]},
+        headers=ADMIN,
+        timeout=30,
+    )
+    assert r.status_code == 200, r.text
+    for device in [*phones, "tag-1"]:
+        expect(page.locator(f'#plan .device[data-device="{device}"]')).to_have_count(1)
+
+    colours = device_colours(page)
+    assert len(set(colours.values())) == 4, colours
+    # the trail and the device list's swatch wear the device's colour
+    for device, colour in colours.items():
+        trail = page.locator(f'#plan [data-layer="live"] path.trail[data-device="{device}"]')
+        assert trail.evaluate("n => n.style.getPropertyValue('--colour')") == colour
+        swatch = page.locator(f'#devices li[data-device="{device}"] .swatch path')
+        expect(swatch).to_have_attribute("fill", colour)
+    # one method, one shape: the three phones alike, the UWB tag's EKF another
+    shapes = {
+        device: page.get_attribute(f'#plan .device[data-device="{device}"] .dot', "d")
+        for device in colours
+    }
+    assert shapes["phone-1"] == shapes["phone-2"] == shapes["phone-3"] != shapes["tag-1"]
+
+
+def demo_walls() -> Any:
+    """Return every line of the demo office a trail may not cross, as one shapely geometry."""
+    fmap = parse_floor_map(load_map())
+    edges = [fmap.outline.boundary, *fmap.walls, *(b.boundary for b in fmap.barriers)]
+    return shapely.union_all(edges)
+
+
+def drawn_runs(d: str) -> list[list[tuple[float, float]]]:
+    """Return the runs of an SVG path of M and L commands, as lists of points."""
+    runs: list[list[tuple[float, float]]] = []
+    for command, x, y in re.findall(r"([ML])(-?[\d.e+-]+),(-?[\d.e+-]+)", d):
+        if command == "M":
+            runs.append([])
+        runs[-1].append((float(x), float(y)))
+    return runs
+
+
+# A tag placed on beacons in turn, jumping through walls: from the corridor into the room
+# above it, over the wall and the no-go area to the next room, back into the corridor,
+# along it, into the room below and back out.
+OFFICE_ROUTE = [(5, 10), (8, 10), (12, 10), (12, 14), (22, 14), (22, 10), (26, 10), (30, 10)]
+OFFICE_ROUTE += [(30, 4), (36, 10)]
+
+
+def office_with_beacons() -> dict:
+    """Return the demo office's map with a beacon at each point of ``OFFICE_ROUTE`` instead
+    of its own transmitters, so that a scan hearing one beacon places the device on it."""
+    doc = load_map()
+    doc["features"] = [f for f in doc["features"] if f["properties"]["kind"] != "transmitter"]
+    doc["features"] += [
+        {
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": [x, y]},
+            "properties": {"kind": "transmitter", "id": beacon_id(x, y), "tech": "ble"},
+        }
+        for x, y in OFFICE_ROUTE
+    ]
+    return doc
+
+
+def test_a_trail_is_not_drawn_through_the_demo_walls(page: Page, server: LiveServer) -> None:
+    sid = f"office-{uuid.uuid4().hex[:8]}"
+    with httpx.Client(base_url=server.url, headers=ADMIN) as http:
+        assert http.put(f"/v1/sites/{sid}", json={"name": "Demo office"}).status_code == 201
+        assert http.put(f"/v1/sites/{sid}/floors/G", json=office_with_beacons()).status_code == 201
+    sign_in(page, server, ADMIN_KEY, sid)
+    t0 = int(time.time() * 1000)
+    post_fixes(
+        server, sid, "walker", [(t0 + 3000 * k, x, y) for k, (x, y) in enumerate(OFFICE_ROUTE)]
+    )
+    marker = page.locator('#plan [data-layer="live"] .device[data-device="walker"]')
+    expect(marker).to_have_attribute("data-t", str(t0 + 3000 * (len(OFFICE_ROUTE) - 1)))
+
+    d = page.get_attribute('#plan [data-layer="live"] path.trail', "d") or ""
+    runs = drawn_runs(d)
+    # every position is drawn, in order: the engine's path, not a route around the walls
+    drawn = [c for run in runs for p in run for c in p]
+    assert drawn == pytest.approx([c for p in OFFICE_ROUTE for c in p])
+    # no drawn leg touches a wall, and only the legs that would are left out
+    walls = demo_walls()
+    legs = list(zip(OFFICE_ROUTE, OFFICE_ROUTE[1:], strict=False))
+    through = [shapely.LineString(leg).intersects(walls) for leg in legs]
+    assert sum(through) == len(runs) - 1 >= 4, d
+    for run in runs:
+        for a, b in zip(run, run[1:], strict=False):
+            assert not shapely.LineString([a, b]).intersects(walls), (a, b)

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
 from app.demo import load_map
 from app.floors.service import put_floor
+from app.geometry.extent import ExtentLimits
 from app.sites.assembly import LoadedSite, assemble_site
 from app.sites.models import Site
 from app.sites.schemas import SiteUpsert
@@ -28,7 +29,8 @@ def office_url(new_database: Any) -> str:
     engine = make_engine(url)
     with session_scope(make_sessionmaker(engine)) as db:
         site, _ = upsert_site(db=db, site_id=SITE_ID, body=SiteUpsert(name="Demo office"))
-        put_floor(db=db, site=site, floor_id="F1", doc=load_map(), raster_cell=RASTER_CELL)
+        limits = ExtentLimits(max_extent_m=3000, max_raster_cells=16_000_000, cell=RASTER_CELL)
+        put_floor(db=db, site=site, floor_id="F1", doc=load_map(), limits=limits)
     engine.dispose()
     return url
 
