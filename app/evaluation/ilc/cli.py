@@ -54,7 +54,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     from rich.table import Table
 
     args = parse_args(argv)
-    console = Console(width=max(Console().width, 120))
+    console = Console(width=max(Console().width, 160))
     t0 = time.perf_counter()
     with console.status("reading site1") as status:
         exp = prepare_experiment(args, status=lambda s: status.update(s))

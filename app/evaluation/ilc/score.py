@@ -137,6 +137,8 @@ class Row:
 def radius_rank(error: np.ndarray, radius: np.ndarray) -> float:
     """Return Spearman's correlation of radius and error: does a larger radius mean a larger
     error? NaN with fewer than three estimates or a constant radius."""
+    finite = np.isfinite(radius)
+    error, radius = error[finite], radius[finite]
     if error.size < 3 or np.ptp(radius) == 0:
         return float("nan")
     return float(spearmanr(radius, error).statistic)
@@ -149,8 +151,9 @@ def summarise(method: str, scores: Sequence[WalkScore], cpu_s: float, updates: i
     hdg = np.concatenate([s.heading_error for s in scores]) if scores else np.zeros(0)
     acc = np.concatenate([s.accuracy for s in scores]) if scores else np.zeros(0)
     right = err[ok]
-    # an honest 68% radius holds 68% of the errors on the right floor
-    within = right <= acc[ok]
+    # an honest 68% radius holds 68% of the errors on the right floor (of those with one)
+    radius = acc[ok]
+    within = right[np.isfinite(radius)] <= radius[np.isfinite(radius)]
     hdg = hdg[np.isfinite(hdg)]
 
     def pct(q: float) -> float:

@@ -217,7 +217,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     from rich.table import Table
 
     args = parse_args(argv)
-    console = Console(width=max(Console().width, 120))
+    console = Console(width=max(Console().width, 160))
     site_dir = args.site or data_dir() / "ilc" / "site1"
     pairs = [(f, p) for f, p in site_walks(site_dir) if not args.floors or f in args.floors]
     ids = [path.name.split(".")[0] for _, path in pairs]
