@@ -68,7 +68,10 @@ def test_summary_statistics_on_a_hand_made_case() -> None:
     assert row.cpu_per_update_s == pytest.approx(5e-4)
     cells = table_cells(row)
     assert cells[3:8] == ["4.00", "3.00", "4.00", "8.80", "28.57%"]
-    assert cells[-2] == "60%"
+    assert cells[-3] == "60%"
+    # radii 1, 1.5, 5, 3, 12 against errors 1, 2, 3, 4, 10: one pair swapped in rank
+    assert row.radius_rank == pytest.approx(0.9)
+    assert cells[-2] == "0.90"
     assert cells[-1] == "500 µs"
 
 
