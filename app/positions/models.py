@@ -12,7 +12,10 @@ class PositionRecord(Base):
     """One emitted position of a device at measurement time ``t`` (ms).
 
     ``smoothed`` marks a position re-emitted refined by the positions after
-    it; the live one of the same time stays beside it.
+    it; the live one of the same time stays beside it. ``odometry_x/y`` is
+    the displacement (m) the device's steps measured since its filter
+    started (null for filters that count no steps): what a full smoothing
+    pass over the stored track weighs the positions against.
     """
 
     __tablename__ = "positions"
@@ -32,3 +35,5 @@ class PositionRecord(Base):
     method: Mapped[str] = mapped_column(String(16))
     computed_at: Mapped[int] = mapped_column(BigInteger)
     smoothed: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    odometry_x: Mapped[float | None] = mapped_column(Float, default=None)
+    odometry_y: Mapped[float | None] = mapped_column(Float, default=None)

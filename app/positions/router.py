@@ -29,15 +29,24 @@ TimeQuery = Annotated[int | None, Query(ge=0, le=2**53)]
 
 
 class HistoryQuery:
-    """The history's window and page size: ``[from, to]`` ms, at most ``limit`` items."""
+    """The history's window and page size: ``[from, to]`` ms, at most ``limit`` items; with
+    ``smoothed``, the window's live track refined by a full backward pass."""
 
     def __init__(
         self,
         t_from: Annotated[TimeQuery, Query(alias="from")] = None,
         t_to: Annotated[TimeQuery, Query(alias="to")] = None,
         limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+        smoothed: Annotated[
+            bool,
+            Query(
+                description="Refine the page's live positions by a full backward pass "
+                "(every position weighed against those before and after it and the "
+                "device's steps); each is marked smoothed"
+            ),
+        ] = False,
     ) -> None:
-        self.t_from, self.t_to, self.limit = t_from, t_to, limit
+        self.t_from, self.t_to, self.limit, self.smoothed = t_from, t_to, limit, smoothed
 
 
 HistoryDep = Annotated[HistoryQuery, Depends()]
@@ -58,7 +67,8 @@ def _latest(db: Session, site_id: str, device_id: str) -> Position:
 
 def _history(db: Session, site_id: str, device_id: str, query: HistoryQuery) -> PositionPage:
     _require_device(db, site_id, device_id)
-    rows = service.history(
+    read = service.live_history if query.smoothed else service.history
+    rows = read(
         db=db,
         site_id=site_id,
         device_id=device_id,
@@ -68,8 +78,15 @@ def _history(db: Session, site_id: str, device_id: str, query: HistoryQuery) -> 
     )
     more = len(rows) > query.limit
     rows = rows[: query.limit]
+    items = [Position.model_validate(r) for r in rows]
+    if query.smoothed:
+        refined = service.full_pass(rows)
+        items = [
+            p.model_copy(update={"x": round(x, 3), "y": round(y, 3), "smoothed": True})
+            for p, (x, y) in zip(items, refined, strict=True)
+        ]
     return PositionPage(
-        items=[Position.model_validate(r) for r in rows],
+        items=items,
         limit=query.limit,
         next_from=rows[-1].t + 1 if more and rows else None,
     )

@@ -7,6 +7,8 @@ from collections.abc import Sequence
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session
 
+from app.engine.samples import Estimate
+from app.engine.smoothing import SmootherParams, smooth_track
 from app.positions.models import PositionRecord
 
 
@@ -73,3 +75,48 @@ def history(
     if t_to is not None:
         query = query.where(PositionRecord.t <= t_to)
     return list(db.scalars(query.order_by(PositionRecord.t, PositionRecord.id).limit(limit)))
+
+
+def live_history(
+    *, db: Session, site_id: str, device_id: str, t_from: int | None, t_to: int | None, limit: int
+) -> list[PositionRecord]:
+    """Return up to ``limit`` live positions with ``t_from <= t <= t_to``, ascending t."""
+    query = select(PositionRecord).where(
+        PositionRecord.site_id == site_id,
+        PositionRecord.device_id == device_id,
+        PositionRecord.smoothed.is_(False),
+    )
+    if t_from is not None:
+        query = query.where(PositionRecord.t >= t_from)
+    if t_to is not None:
+        query = query.where(PositionRecord.t <= t_to)
+    return list(db.scalars(query.order_by(PositionRecord.t, PositionRecord.id).limit(limit)))
+
+
+def full_pass(
+    rows: Sequence[PositionRecord], params: SmootherParams | None = None
+) -> list[tuple[float, float]]:
+    """Return each live position refined by the full backward pass over ``rows`` (x, y in m).
+
+    The positions are weighed against the odometry stored with them and
+    against each other, floor run by floor run (``smooth_track``).
+    """
+    floors: dict[str | None, int] = {}
+    estimates = [
+        Estimate(
+            t=r.t,
+            x=r.x,
+            y=r.y,
+            z=r.z,
+            floor=floors.setdefault(r.floor_id, len(floors)),
+            heading=float("nan"),
+            accuracy=r.accuracy,
+            speed=float("nan"),
+            method=r.method,
+            odometry=None
+            if r.odometry_x is None or r.odometry_y is None
+            else (r.odometry_x, r.odometry_y),
+        )
+        for r in rows
+    ]
+    return [(e.x, e.y) for e in smooth_track(estimates, params or SmootherParams())]

@@ -42,6 +42,23 @@ behind everything: dropping the rest as late cut every scan sent with
 per-reading times in two."""
 
 
+STORED_ONLY = ("odometry_x", "odometry_y")
+"""Keys of a position message kept in the history but not sent to clients."""
+
+
+def public(position: Message) -> Message:
+    """Return a position message as clients get it (without what only the history keeps)."""
+    return {k: v for k, v in position.items() if k not in STORED_ONLY}
+
+
+def _odometry(estimate: Estimate) -> Message:
+    """Return the estimate's odometry (m) under the history's keys, null without one."""
+    odo = estimate.odometry
+    if odo is None:
+        return {"odometry_x": None, "odometry_y": None}
+    return {"odometry_x": round(float(odo[0]), 3), "odometry_y": round(float(odo[1]), 3)}
+
+
 def late_before(kind: str, processed_t: int, processed_wifi_t: int = -1) -> int:
     """Return the time at or before which a sample of ``kind`` arrives too late to be used."""
     if kind == "wifi":
@@ -238,7 +255,7 @@ class DeviceSession:
             "method": estimate.method,
             "computed_at": now,
             "smoothed": estimate.smoothed,
-        }
+        } | _odometry(estimate)
 
     # -- lifecycle -----------------------------------------------------------------------
 
