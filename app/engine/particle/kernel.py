@@ -1,0 +1,358 @@
+"""Compiled loops for the per-particle work of an update: moves, likelihood, resampling, estimate.
+
+Each function here has a numpy twin elsewhere in the package (the
+reference) with the same signature and, by construction, the same result:
+the loops do the twin's float32 and float64 arithmetic in the same order,
+and every transcendental (sin, cos, exp, log1p) is still taken by numpy's
+vectorised ufuncs between the loops. numba's scalar libm calls differ from
+numpy's SIMD loops in the last bit for 4-40% of float32 inputs and cost
+5-70 times more; a last-bit difference in a particle's position decides,
+now and then, which cell or side of a wall it is on, and resampling turns
+that into a different track. What stays numpy is a few passes over
+contiguous rows; what is compiled is what numpy does badly: the wall
+trace's data-dependent loop, the likelihood's once-per-occupied-cell
+gather, resampling's copies, and the radius histogram, each one pass
+without temporaries.
+
+The loops are compiled once per process and cached on disk.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from app.engine.particle.estimate import RADIUS_BIN_FLOOR_M, RADIUS_BINS, RADIUS_BINS_PER_EFOLD
+from app.engine.particle.floor_model import FloorModel
+from app.engine.particle.inputs import FilterInput
+from app.engine.particle.motion import displacements
+from app.engine.particle.params import ParticleFilterParams
+from app.engine.particle.walls import WallRaster
+from app.engine.particle.weights import reading_weights
+
+_ROOT2 = np.float32(np.sqrt(2.0))
+_PI = np.float32(np.pi)
+_ONE = np.float32(1.0)
+_TWO = np.float32(2.0)
+_HALF = np.float32(0.5)
+_TINY = np.float32(1e-6)
+
+
+def move_particles(
+    model: FloorModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    alpha: np.ndarray,
+    inputs: list[FilterInput],
+    noise: np.ndarray,
+    p: ParticleFilterParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for moving filters, as ``motion.move_particles``, the moves checked compiled."""
+    dx, dy, direction, long = displacements(alpha, inputs, noise, p)
+    x, y, alpha = x.copy(), y.copy(), np.empty_like(alpha)
+    walls = model.walls
+    _settle(
+        x,
+        y,
+        alpha,
+        dx,
+        dy,
+        direction,
+        noise[:, 1],
+        long,
+        np.float32(p.max_move_m),
+        walls.free,
+        walls.clearance,
+        walls.stride,
+        *_cell_transform(walls),
+    )
+    return x, y, alpha
+
+
+def _cell_transform(walls: WallRaster) -> tuple[np.float32, np.float32, np.float32]:
+    """Return (1 / c, x₀ / c - pad, y₀ / c - pad) in float32, as ``WallRaster.cells`` uses them."""
+    inv = walls.inv_cell
+    return (
+        np.float32(inv),
+        np.float32(walls.origin[0] * inv - walls.pad),
+        np.float32(walls.origin[1] * inv - walls.pad),
+    )
+
+
+@njit(cache=True)
+def _settle(
+    x: np.ndarray,
+    y: np.ndarray,
+    alpha: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    direction: np.ndarray,
+    turn: np.ndarray,
+    long: np.ndarray,
+    max_move: np.float32,
+    free: np.ndarray,
+    clearance: np.ndarray,
+    stride: int,
+    inv: np.float32,
+    off_u: np.float32,
+    off_v: np.float32,
+) -> None:  # pragma: no cover - compiled
+    """Make each particle's move in place where the plan allows it, as ``motion.settle_moves``.
+
+    ``walls.moves_free``'s rule in two passes: the ends of every move, then
+    the half-cell points of the moves neither end vouches for, point by
+    point across moves without branches (a move's own loop of a few points
+    would mispredict its exit every time).
+    """
+    rows, n = x.shape
+    # the moves to trace: first point (cells), step, point count, flat index
+    su = np.empty(rows * n, np.float32)
+    sv = np.empty(rows * n, np.float32)
+    tu = np.empty(rows * n, np.float32)
+    tv = np.empty(rows * n, np.float32)
+    count = np.empty(rows * n, np.int32)
+    which = np.empty(rows * n, np.int64)
+    ok = np.empty((rows, n), np.bool_)
+    traced = 0
+    most = 0
+    for r in range(rows):
+        for i in range(n):
+            sx, sy = dx[r, i], dy[r, i]
+            if long[r]:
+                # shortened to max_move: s = min(1, L / max(|Δ|, 10⁻⁶))
+                scale = min(_ONE, max_move / max(np.hypot(sx, sy), _TINY))
+                sx *= scale
+                sy *= scale
+            dx[r, i], dy[r, i] = sx, sy
+            # u = x / c - (x₀ / c - pad)
+            u0, v0 = x[r, i] * inv - off_u, y[r, i] * inv - off_v
+            u1, v1 = (x[r, i] + sx) * inv - off_u, (y[r, i] + sy) * inv - off_v
+            du, dv = u1 - u0, v1 - v0
+            length = np.sqrt(du * du + dv * dv)
+            k1 = int(v1) * stride + int(u1)
+            end_free = free[k1] != 0
+            reach0 = clearance[int(v0) * stride + int(u0)] - _ROOT2
+            reach1 = clearance[k1] - _ROOT2
+            # free ⇐ every point lies within the reach of one end
+            ok[r, i] = end_free and reach0 + reach1 > length
+            if end_free and not ok[r, i]:
+                # k = ⌈|move| / ½⌉ points after the start; those an end vouches for are skipped
+                k = max(np.ceil(_TWO * length), _ONE)
+                inv_h = k / max(length, _TINY)
+                first = max(np.ceil(reach0 * inv_h), _ONE)
+                last = np.floor(min(k - reach1 * inv_h, k - _HALF))
+                c = int(max(last - first + _ONE, np.float32(0.0)))
+                tu[traced], tv[traced] = du / k, dv / k
+                # p = p₀ + j Δp / k from the first point to look up, then one step at a time
+                su[traced], sv[traced] = u0 + first * tu[traced], v0 + first * tv[traced]
+                count[traced] = c
+                which[traced] = r * n + i
+                most = max(most, c)
+                traced += 1
+    good = np.ones(traced, np.uint8)
+    top = free.size - 1
+    for j in range(most):
+        for m in range(traced):
+            point_free = free[min(max(int(sv[m]) * stride + int(su[m]), 0), top)]
+            good[m] &= point_free | (j >= count[m])
+            su[m] += tu[m]
+            sv[m] += tv[m]
+    flat_ok = ok.reshape(-1)
+    for m in range(traced):
+        flat_ok[which[m]] = good[m] != 0
+    for r in range(rows):
+        for i in range(n):
+            if ok[r, i]:
+                x[r, i] += dx[r, i]
+                y[r, i] += dy[r, i]
+                alpha[r, i] = direction[r, i]
+            else:
+                # α = (2u - 1) π
+                alpha[r, i] = (_TWO * turn[r, i] - _ONE) * _PI
+
+
+def log_likelihood(
+    model: FloorModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    tx: np.ndarray,
+    rssi: np.ndarray,
+    count: np.ndarray,
+    valid: np.ndarray,
+) -> np.ndarray:
+    """Step 10, as ``weights.log_likelihood``: one pass, each occupied cell summed once per row.
+
+    A particle on a cell its row has not visited yet sums the readings
+    there, in column order, as ``pathloss.grid_log_likelihood`` does; the
+    others copy that sum.
+    """
+    grid = model.grid
+    local, weight = reading_weights(model, tx, count, valid)
+    step = grid.step_db
+    # s' = (s̄ - floor) / step; c' = -step² n_m / (2 σ_m²)
+    s_code = ((rssi - grid.floor_dbm) / step).astype(np.float32)
+    c = (-weight * step * step).astype(np.float32)
+    ny, nx = grid.shape
+    return _cell_log_likelihood(
+        grid.codes,
+        nx,
+        ny,
+        np.float32(grid.origin[0]),
+        np.float32(grid.origin[1]),
+        np.float32(1.0 / grid.cell),
+        x,
+        y,
+        local,
+        s_code,
+        c,
+    )
+
+
+@njit(cache=True)
+def _cell_log_likelihood(
+    codes: np.ndarray,
+    nx: int,
+    ny: int,
+    x0: np.float32,
+    y0: np.float32,
+    inv: np.float32,
+    x: np.ndarray,
+    y: np.ndarray,
+    local: np.ndarray,
+    s_code: np.ndarray,
+    c: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Return -Σ_m c'_m (code - s'_m)² of each particle's cell, summed once per cell and row."""
+    rows, n = x.shape
+    seen = np.full(codes.shape[0], -1, np.int32)
+    value = np.empty(codes.shape[0], np.float32)
+    out = np.empty((rows, n), np.float32)
+    for r in range(rows):
+        for i in range(n):
+            # col = ⌊(x - x₀) / c⌋, row = ⌊(y - y₀) / c⌋, both clamped; k = row · nx + col
+            col = min(max(int((x[r, i] - x0) * inv), 0), nx - 1)
+            row = min(max(int((y[r, i] - y0) * inv), 0), ny - 1)
+            cell = row * nx + col
+            if seen[cell] != r:
+                seen[cell] = r
+                ll = np.float32(0.0)
+                for m in range(local.shape[1]):
+                    diff = np.float32(codes[cell, local[r, m]]) - s_code[r, m]
+                    ll += diff * diff * c[r, m]
+                value[cell] = ll
+            out[r, i] = value[cell]
+    return out
+
+
+def resample_rows(
+    x: np.ndarray,
+    y: np.ndarray,
+    alpha: np.ndarray,
+    w: np.ndarray,
+    rows: np.ndarray,
+    u: np.ndarray,
+) -> None:
+    """Step 11 in place, as ``weights.resample_rows``: each copy written once, no index array."""
+    _resample(x, y, alpha, w, np.asarray(rows, np.intp), np.asarray(u, np.float64))
+
+
+@njit(cache=True)
+def _resample(
+    x: np.ndarray, y: np.ndarray, alpha: np.ndarray, w: np.ndarray, rows: np.ndarray, u: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """Copy particle i into the keys (u + j) / N in [S_{i-1}, S_i) of each row, then w = 1/N."""
+    n = w.shape[1]
+    bx = np.empty(n, np.float32)
+    by = np.empty(n, np.float32)
+    ba = np.empty(n, np.float32)
+    for q in range(rows.size):
+        r = rows[q]
+        cdf = 0.0
+        start = 0
+        for i in range(n):
+            cdf += w[r, i]
+            # keys below S_i: ⌈N S_i - u⌉ within [0, N]; every key lies below S_N
+            below = n if i == n - 1 else min(max(int(np.ceil(n * cdf - u[q])), 0), n)
+            for j in range(start, below):
+                bx[j], by[j], ba[j] = x[r, i], y[r, i], alpha[r, i]
+            start = max(start, below)
+        x[r], y[r], alpha[r] = bx, by, ba
+        w[r] = 1.0 / n
+
+
+def cloud_estimate(
+    x: np.ndarray, y: np.ndarray, alpha: np.ndarray, w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return each row's mean x, y, direction and 68% radius, as ``estimate.cloud_estimate``.
+
+    Two compiled passes (the moments and the particles' distances, then the
+    radius histogram) around numpy's sin, cos and log1p.
+    """
+    scale = np.float32(1.0 / RADIUS_BIN_FLOOR_M)
+    mx, my, s, co, t = _moments(x, y, w, np.sin(alpha), np.cos(alpha), scale)
+    # bin = ⌊k ln(1 + d / d₀)⌋
+    np.log1p(t, out=t)
+    k = _quantile_bins(t, w, 0.68)
+    heading = np.where(np.hypot(s, co) >= 0.5, np.mod(np.degrees(np.arctan2(s, co)), 360.0), np.nan)
+    # upper edge: d₀ (e^((k + 1) / k_e) - 1)
+    return mx, my, heading, RADIUS_BIN_FLOOR_M * np.expm1((k + 1) / RADIUS_BINS_PER_EFOLD)
+
+
+@njit(cache=True)
+def _moments(
+    x: np.ndarray,
+    y: np.ndarray,
+    w: np.ndarray,
+    sin_a: np.ndarray,
+    cos_a: np.ndarray,
+    scale: np.float32,
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:  # pragma: no cover - compiled
+    """Return each row's Σ w x, Σ w y, Σ w sin α, Σ w cos α and every particle's |p - mean| / d₀."""
+    rows, n = x.shape
+    mx, my = np.empty(rows), np.empty(rows)
+    s, co = np.empty(rows), np.empty(rows)
+    scaled = np.empty((rows, n), np.float32)
+    for r in range(rows):
+        ax = ay = asin = acos = 0.0
+        for i in range(n):
+            wi = w[r, i]
+            ax += wi * x[r, i]
+            ay += wi * y[r, i]
+            asin += wi * sin_a[r, i]
+            acos += wi * cos_a[r, i]
+        mx[r], my[r], s[r], co[r] = ax, ay, asin, acos
+        # in the particles' float32, as the reference
+        cx, cy = np.float32(ax), np.float32(ay)
+        for i in range(n):
+            ex, ey = x[r, i] - cx, y[r, i] - cy
+            scaled[r, i] = np.sqrt(ex * ex + ey * ey) * scale
+    return mx, my, s, co, scaled
+
+
+@njit(cache=True)
+def _quantile_bins(
+    t: np.ndarray, w: np.ndarray, q: float
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Return each row's first radius bin whose cumulative weight reaches ``q`` of the total."""
+    rows, n = t.shape
+    k_e = np.float32(RADIUS_BINS_PER_EFOLD)
+    out = np.empty(rows, np.intp)
+    hist = np.empty(RADIUS_BINS)
+    for r in range(rows):
+        hist[:] = 0.0
+        for i in range(n):
+            hist[min(int(k_e * t[r, i]), RADIUS_BINS - 1)] += w[r, i]
+        total = 0.0
+        for b in range(RADIUS_BINS):
+            total += hist[b]
+        target = q * total * (1.0 - 1e-12)
+        cum = 0.0
+        out[r] = 0
+        for b in range(RADIUS_BINS):
+            cum += hist[b]
+            if cum >= target:
+                out[r] = b
+                break
+    return out
