@@ -49,7 +49,22 @@ def move_particles(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step 2 for moving filters, as ``motion.move_particles``, the moves checked compiled."""
     dx, dy, direction, long = displacements(alpha, inputs, noise, p)
-    x, y, alpha = x.copy(), y.copy(), np.empty_like(alpha)
+    return settle_moves(model, x, y, dx, dy, direction, noise[:, 1], long, p.max_move_m)
+
+
+def settle_moves(
+    model: FloorModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    direction: np.ndarray,
+    turn: np.ndarray,
+    long: np.ndarray,
+    max_move_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2, as ``motion.settle_moves``: the allowed moves made, blocked particles turned."""
+    x, y, alpha = x.copy(), y.copy(), np.empty_like(direction)
     walls = model.walls
     _settle(
         x,
@@ -58,9 +73,9 @@ def move_particles(
         dx,
         dy,
         direction,
-        noise[:, 1],
+        turn,
         long,
-        np.float32(p.max_move_m),
+        np.float32(max_move_m),
         walls.free,
         walls.clearance,
         walls.stride,
