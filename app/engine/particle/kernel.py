@@ -114,10 +114,11 @@ def _settle(
 ) -> None:  # pragma: no cover - compiled
     """Make each particle's move in place where the plan allows it, as ``motion.settle_moves``.
 
-    ``walls.moves_free``'s rule in two passes: the ends of every move, then
-    the half-cell points of the moves neither end vouches for, point by
-    point across moves without branches (a move's own loop of a few points
-    would mispredict its exit every time).
+    ``walls.moves_free``'s rule in two passes: the ends of every move, which
+    settle most of them, then the half-cell points of the moves neither end
+    vouches for, point by point across moves. Neither pass branches on the
+    data: a branch on whether a move needs tracing, or on a move's point
+    count, would be mispredicted about every other particle.
     """
     rows, n = x.shape
     # the moves to trace: first point (cells), step, point count, flat index
@@ -125,23 +126,25 @@ def _settle(
     sv = np.empty(rows * n, np.float32)
     tu = np.empty(rows * n, np.float32)
     tv = np.empty(rows * n, np.float32)
-    count = np.empty(rows * n, np.int32)
+    count = np.empty(rows * n, np.int64)
     which = np.empty(rows * n, np.int64)
-    ok = np.empty((rows, n), np.bool_)
     traced = 0
-    most = 0
     for r in range(rows):
         for i in range(n):
             sx, sy = dx[r, i], dy[r, i]
             if long[r]:
+                # |Δ| = hypot(Δx, Δy), glibc's way: rounded once from float64, where
+                # the squares are exact (a libm call costs five times more)
+                norm = np.float32(np.sqrt(np.float64(sx) ** 2 + np.float64(sy) ** 2))
                 # shortened to max_move: s = min(1, L / max(|Δ|, 10⁻⁶))
-                scale = min(_ONE, max_move / max(np.hypot(sx, sy), _TINY))
+                scale = min(_ONE, max_move / max(norm, _TINY))
                 sx *= scale
                 sy *= scale
-            dx[r, i], dy[r, i] = sx, sy
+            x0, y0 = x[r, i], y[r, i]
+            x1, y1 = x0 + sx, y0 + sy
             # u = x / c - (x₀ / c - pad)
-            u0, v0 = x[r, i] * inv - off_u, y[r, i] * inv - off_v
-            u1, v1 = (x[r, i] + sx) * inv - off_u, (y[r, i] + sy) * inv - off_v
+            u0, v0 = x0 * inv - off_u, y0 * inv - off_v
+            u1, v1 = x1 * inv - off_u, y1 * inv - off_v
             du, dv = u1 - u0, v1 - v0
             length = np.sqrt(du * du + dv * dv)
             k1 = int(v1) * stride + int(u1)
@@ -149,41 +152,67 @@ def _settle(
             reach0 = clearance[int(v0) * stride + int(u0)] - _ROOT2
             reach1 = clearance[k1] - _ROOT2
             # free ⇐ every point lies within the reach of one end
-            ok[r, i] = end_free and reach0 + reach1 > length
-            if end_free and not ok[r, i]:
-                # k = ⌈|move| / ½⌉ points after the start; those an end vouches for are skipped
-                k = max(np.ceil(_TWO * length), _ONE)
-                inv_h = k / max(length, _TINY)
-                first = max(np.ceil(reach0 * inv_h), _ONE)
-                last = np.floor(min(k - reach1 * inv_h, k - _HALF))
-                c = int(max(last - first + _ONE, np.float32(0.0)))
-                tu[traced], tv[traced] = du / k, dv / k
-                # p = p₀ + j Δp / k from the first point to look up, then one step at a time
-                su[traced], sv[traced] = u0 + first * tu[traced], v0 + first * tv[traced]
-                count[traced] = c
-                which[traced] = r * n + i
-                most = max(most, c)
-                traced += 1
+            made = end_free & (reach0 + reach1 > length)
+            trace = end_free & ~made
+            # blocked: α = (2u - 1) π; a traced move is settled after the trace
+            x[r, i] = x1 if made else x0
+            y[r, i] = y1 if made else y0
+            alpha[r, i] = direction[r, i] if made else (_TWO * turn[r, i] - _ONE) * _PI
+            # k = ⌈|move| / ½⌉ points after the start; those an end vouches for are skipped
+            k = max(np.ceil(_TWO * length), _ONE)
+            inv_h = k / max(length, _TINY)
+            first = max(np.ceil(reach0 * inv_h), _ONE)
+            last = np.floor(min(k - reach1 * inv_h, k - _HALF))
+            # written for every move, kept (traced advanced) for those to trace
+            count[traced] = int(max(last - first + _ONE, np.float32(0.0)))
+            tu[traced], tv[traced] = du / k, dv / k
+            # p = p₀ + j Δp / k from the first point to look up, then one step at a time
+            su[traced], sv[traced] = u0 + first * tu[traced], v0 + first * tv[traced]
+            which[traced] = r * n + i
+            dx[r, i], dy[r, i] = sx, sy
+            traced += trace
+    if traced == 0:
+        return
+    # most points first (a counting sort), so that the moves still traced at point j
+    # are a leading run: a random walk's few long moves do not hold up the rest
+    order = _by_count_descending(count[:traced])
+    su, sv, tu, tv = su[order], sv[order], tu[order], tv[order]
     good = np.ones(traced, np.uint8)
     top = free.size - 1
-    for j in range(most):
-        for m in range(traced):
-            point_free = free[min(max(int(sv[m]) * stride + int(su[m]), 0), top)]
-            good[m] &= point_free | (j >= count[m])
+    active = traced
+    for j in range(count[order[0]]):
+        while count[order[active - 1]] <= j:
+            active -= 1
+        for m in range(active):
+            good[m] &= free[min(max(int(sv[m]) * stride + int(su[m]), 0), top)]
             su[m] += tu[m]
             sv[m] += tv[m]
-    flat_ok = ok.reshape(-1)
+    x, y, alpha = x.reshape(-1), y.reshape(-1), alpha.reshape(-1)
+    dx, dy, direction = dx.reshape(-1), dy.reshape(-1), direction.reshape(-1)
     for m in range(traced):
-        flat_ok[which[m]] = good[m] != 0
-    for r in range(rows):
-        for i in range(n):
-            if ok[r, i]:
-                x[r, i] += dx[r, i]
-                y[r, i] += dy[r, i]
-                alpha[r, i] = direction[r, i]
-            else:
-                # α = (2u - 1) π
-                alpha[r, i] = (_TWO * turn[r, i] - _ONE) * _PI
+        f = which[order[m]]
+        if good[m]:
+            x[f] += dx[f]
+            y[f] += dy[f]
+            alpha[f] = direction[f]
+
+
+@njit(cache=True)
+def _by_count_descending(count: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Return the indices of ``count`` (non-negative integers) ordered by count, largest first."""
+    most = count.max()
+    # start[c] = how many counts exceed c
+    start = np.zeros(most + 1, np.int64)
+    for c in count:
+        start[c] += 1
+    total = 0
+    for c in range(most, -1, -1):
+        start[c], total = total, total + start[c]
+    order = np.empty(count.size, np.int64)
+    for m in range(count.size):
+        order[start[count[m]]] = m
+        start[count[m]] += 1
+    return order
 
 
 def log_likelihood(
