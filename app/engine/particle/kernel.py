@@ -304,22 +304,31 @@ def resample_rows(
 def _resample(
     x: np.ndarray, y: np.ndarray, alpha: np.ndarray, w: np.ndarray, rows: np.ndarray, u: np.ndarray
 ) -> None:  # pragma: no cover - compiled
-    """Copy particle i into the keys (u + j) / N in [S_{i-1}, S_i) of each row, then w = 1/N."""
+    """Copy particle i into the keys (u + j) / N in [S_{i-1}, S_i) of each row, then w = 1/N.
+
+    Key j's particle is the number of i with S_i at or below it, counted as a
+    prefix sum of where each S_i falls: no loop over a particle's copies,
+    whose count (0, 1 or 2 mostly) would be mispredicted at every particle.
+    """
     n = w.shape[1]
+    ends = np.empty(n + 1, np.int64)
     bx = np.empty(n, np.float32)
     by = np.empty(n, np.float32)
     ba = np.empty(n, np.float32)
     for q in range(rows.size):
         r = rows[q]
+        ends[:] = 0
         cdf = 0.0
-        start = 0
-        for i in range(n):
+        for i in range(n - 1):
             cdf += w[r, i]
-            # keys below S_i: ⌈N S_i - u⌉ within [0, N]; every key lies below S_N
-            below = n if i == n - 1 else min(max(int(np.ceil(n * cdf - u[q])), 0), n)
-            for j in range(start, below):
-                bx[j], by[j], ba[j] = x[r, i], y[r, i], alpha[r, i]
-            start = max(start, below)
+            # keys below S_i: ⌈N S_i - u⌉ within [0, N]
+            ends[min(max(int(np.ceil(n * cdf - u[q])), 0), n)] += 1
+        # every key lies below S_N
+        ends[n] += 1
+        source = 0
+        for j in range(n):
+            source += ends[j]
+            bx[j], by[j], ba[j] = x[r, source], y[r, source], alpha[r, source]
         x[r], y[r], alpha[r] = bx, by, ba
         w[r] = 1.0 / n
 
