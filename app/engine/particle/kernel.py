@@ -266,25 +266,40 @@ def _cell_log_likelihood(
     s_code: np.ndarray,
     c: np.ndarray,
 ) -> np.ndarray:  # pragma: no cover - compiled
-    """Return -Σ_m c'_m (code - s'_m)² of each particle's cell, summed once per cell and row."""
+    """Return -Σ_m c'_m (code - s'_m)² of each particle's cell, summed once per cell and row.
+
+    A row's occupied cells are listed first and summed after: the raster is
+    megabytes, each cell's codes a cache miss, and misses of cells summed in
+    a loop of their own overlap, where a sum behind each first visit's
+    (mispredicted) branch would wait for its miss alone.
+    """
     rows, n = x.shape
     seen = np.full(codes.shape[0], -1, np.int32)
     value = np.empty(codes.shape[0], np.float32)
+    cells = np.empty(n, np.int64)
+    occupied = np.empty(n, np.int64)
     out = np.empty((rows, n), np.float32)
     for r in range(rows):
+        k = 0
         for i in range(n):
             # col = ⌊(x - x₀) / c⌋, row = ⌊(y - y₀) / c⌋, both clamped; k = row · nx + col
             col = min(max(int((x[r, i] - x0) * inv), 0), nx - 1)
             row = min(max(int((y[r, i] - y0) * inv), 0), ny - 1)
             cell = row * nx + col
-            if seen[cell] != r:
-                seen[cell] = r
-                ll = np.float32(0.0)
-                for m in range(local.shape[1]):
-                    diff = np.float32(codes[cell, local[r, m]]) - s_code[r, m]
-                    ll += diff * diff * c[r, m]
-                value[cell] = ll
-            out[r, i] = value[cell]
+            cells[i] = cell
+            # written for every particle, kept (k advanced) for a cell's first one
+            occupied[k] = cell
+            k += seen[cell] != r
+            seen[cell] = r
+        for j in range(k):
+            cell = occupied[j]
+            ll = np.float32(0.0)
+            for m in range(local.shape[1]):
+                diff = np.float32(codes[cell, local[r, m]]) - s_code[r, m]
+                ll += diff * diff * c[r, m]
+            value[cell] = ll
+        for i in range(n):
+            out[r, i] = value[cells[i]]
     return out
 
 
