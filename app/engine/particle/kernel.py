@@ -1,18 +1,18 @@
 """Compiled loops for the per-particle work of an update: moves, likelihood, resampling, estimate.
 
 Each function here has a numpy twin elsewhere in the package (the
-reference) with the same signature and, by construction, the same result:
-the loops do the twin's float32 and float64 arithmetic in the same order,
-and every transcendental (sin, cos, exp, log1p) is still taken by numpy's
-vectorised ufuncs between the loops. numba's scalar libm calls differ from
-numpy's SIMD loops in the last bit for 4-40% of float32 inputs and cost
-5-70 times more; a last-bit difference in a particle's position decides,
-now and then, which cell or side of a wall it is on, and resampling turns
-that into a different track. What stays numpy is a few passes over
-contiguous rows; what is compiled is what numpy does badly: the wall
-trace's data-dependent loop, the likelihood's once-per-occupied-cell
-gather, resampling's copies, and the radius histogram, each one pass
-without temporaries.
+reference) with the same signature and, by construction, the same result
+(but for the estimate's float64 sums, 10⁻¹¹ m apart as they run in another
+order): the loops do the twin's float32 and float64 arithmetic in the same
+order, and every transcendental (sin, cos, exp, log1p) is still taken by
+numpy's vectorised ufuncs between the loops. numba's scalar libm calls
+differ from numpy's SIMD loops in the last bit for 4-40% of float32 inputs
+and cost 5-70 times more; a last-bit difference in a particle's position
+decides, now and then, which cell or side of a wall it is on, and
+resampling turns that into a different track. What stays numpy is a few
+passes over contiguous rows; what is compiled is what numpy does badly:
+the wall trace's data-dependent loop, the likelihood's once-per-occupied-
+cell gather, resampling's copies and the radius histogram.
 
 The loops are compiled once per process and cached on disk.
 """
