@@ -6,17 +6,22 @@ and rooms with doors along them, 216 access points on a 7.5 m lattice at
 the plan (two 0.7 m steps per 1 s window, turning away from walls) and
 hears the ``M`` strongest access points with 6 dB noise. Filters are warmed
 up first, so the timed updates run in the converged regime (resampling,
-mutation and centre sampling every window).
+mutation and centre sampling every window); the warm-up also compiles the
+kernel (or loads it from numba's disk cache).
 
 Prints the median CPU time per device update (µs) over the repeats for
 1, 10, 100 and 1,000 devices per batch and 5, 20 and 50 transmitters heard,
 for the filter update alone (``update_filters``, two steps per window) and
 for the whole positioning loop (``PositioningEngine.process``:
 preprocessing, floor selection, filter, refinement, projection; the
-batches carry radio only, so particles move by the random walk).
+batches carry radio only, so particles move by the random walk). Each cell
+runs the numpy reference and the compiled kernel side by side on the same
+inputs, alternating update by update, so that a busy machine slows both
+alike; their ratio is the speed-up.
 
-Run: ``python -m bench.engine`` (about three minutes), ``--profile`` for a
-cProfile of 100 devices hearing 20 transmitters.
+Run: ``python -m bench.engine`` (about four minutes), ``--quick`` for fewer
+updates, ``--profile`` for a cProfile of 100 devices hearing 20 transmitters
+(``--kernel numpy`` for the reference's).
 """
 
 from __future__ import annotations
@@ -29,6 +34,8 @@ import argparse  # noqa: E402
 import cProfile  # noqa: E402
 import pstats  # noqa: E402
 import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from typing import Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -113,6 +120,9 @@ class Walkers:
         return top, np.take_along_axis(rssi, top, axis=1)
 
 
+KERNELS: tuple[Literal["numpy", "numba"], ...] = ("numpy", "numba")
+
+
 def filter_inputs(
     walkers: Walkers, slots: np.ndarray, rngs: list[np.random.Generator], t: int, m: int
 ) -> list[FilterInput]:
@@ -134,72 +144,85 @@ def filter_inputs(
     ]
 
 
-def time_filter(site: SiteModel, d: int, m: int, warmup: int, repeats: int, n: int = 1000) -> float:
-    """Return the median CPU µs per device of ``update_filters`` over the repeats."""
+def time_filter(
+    site: SiteModel, d: int, m: int, warmup: int, repeats: int, n: int = 1000
+) -> dict[str, float]:
+    """Return each kernel's median CPU µs per device of ``update_filters`` over the repeats."""
     params = ParticleFilterParams(n_particles=n)
     model = build_floor_models(site, params)[0]
-    rng = np.random.default_rng(d * 1000 + m)
-    walkers = Walkers(site, d, rng)
-    bank = ParticleBank(params.n_particles, d)
-    slots = np.array([bank.allocate() for _ in range(d)])
-    rngs = [np.random.default_rng(i) for i in range(d)]
-    samples = []
-    for k in range(warmup + repeats):
+    walkers = Walkers(site, d, np.random.default_rng(d * 1000 + m))
+    banks = {k: ParticleBank(params.n_particles, d) for k in KERNELS}
+    slots = {k: np.array([bank.allocate() for _ in range(d)]) for k, bank in banks.items()}
+    rngs = {k: [np.random.default_rng(i) for i in range(d)] for k in KERNELS}
+    samples: dict[str, list[float]] = {k: [] for k in KERNELS}
+    for step in range(warmup + repeats):
         walkers.step()
-        inputs = filter_inputs(walkers, slots, rngs, 1000 * (k + 1), m)
-        start = time.process_time()
-        update_filters(bank, model, inputs, params)
-        elapsed = time.process_time() - start
-        if k >= warmup:
-            samples.append(elapsed / d)
-    return float(np.median(samples) * 1e6)
+        state = walkers.rng.bit_generator.state
+        for k in KERNELS:
+            # both kernels hear the same readings
+            walkers.rng.bit_generator.state = state
+            inputs = filter_inputs(walkers, slots[k], rngs[k], 1000 * (step + 1), m)
+            start = time.process_time()
+            update_filters(banks[k], model, inputs, replace(params, kernel=k))
+            elapsed = time.process_time() - start
+            if step >= warmup:
+                samples[k].append(elapsed / d)
+    return {k: float(np.median(v) * 1e6) for k, v in samples.items()}
 
 
-def time_engine(site: SiteModel, d: int, m: int, warmup: int, repeats: int, n: int = 1000) -> float:
-    """Return the median CPU µs per device of ``PositioningEngine.process`` over the repeats."""
-    engine = PositioningEngine(site, PositioningParams(filter=ParticleFilterParams(n_particles=n)))
-    rng = np.random.default_rng(d * 1000 + m + 7)
-    walkers = Walkers(site, d, rng)
+def time_engine(
+    site: SiteModel, d: int, m: int, warmup: int, repeats: int, n: int = 1000
+) -> dict[str, float]:
+    """Return each kernel's median CPU µs per device of ``PositioningEngine.process``."""
+    engines = {
+        k: PositioningEngine(
+            site, PositioningParams(filter=ParticleFilterParams(n_particles=n, kernel=k))
+        )
+        for k in KERNELS
+    }
+    walkers = Walkers(site, d, np.random.default_rng(d * 1000 + m + 7))
     ids = [f"dev{i}" for i in range(d)]
-    for device_id in ids:
-        engine.add(device_id)
-    samples = []
-    for k in range(warmup + repeats):
+    for engine in engines.values():
+        for device_id in ids:
+            engine.add(device_id)
+    samples: dict[str, list[float]] = {k: [] for k in KERNELS}
+    for step in range(warmup + repeats):
         walkers.step()
         tx, rssi = walkers.readings(m)
-        t = 1000 * (k + 1) + 500
-        batches = {
-            device_id: Batch(
-                rssi=RssiReadings(
-                    t=np.full(m, t, np.int64), tx=tx[i].astype(np.int32), rssi=rssi[i]
+        t = 1000 * (step + 1) + 500
+        for k, engine in engines.items():
+            batches = {
+                device_id: Batch(
+                    rssi=RssiReadings(
+                        t=np.full(m, t, np.int64), tx=tx[i].astype(np.int32), rssi=rssi[i]
+                    )
                 )
-            )
-            for i, device_id in enumerate(ids)
-        }
-        start = time.process_time()
-        engine.process(batches)
-        elapsed = time.process_time() - start
-        if k >= warmup:
-            samples.append(elapsed / d)
-    return float(np.median(samples) * 1e6)
+                for i, device_id in enumerate(ids)
+            }
+            start = time.process_time()
+            engine.process(batches)
+            elapsed = time.process_time() - start
+            if step >= warmup:
+                samples[k].append(elapsed / d)
+    return {k: float(np.median(v) * 1e6) for k, v in samples.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
     """Print the tables, or a profile with ``--profile``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--kernel", choices=KERNELS, default="numba", help="kernel to profile")
     parser.add_argument("--particles", type=int, default=1000, help="N per filter")
     parser.add_argument("--devices", default="1,10,100,1000", help="batch sizes, comma-separated")
     parser.add_argument("--warmup", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--quick", action="store_true", help="3 updates to warm up, 5 timed")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.warmup, args.repeats = 3, 5
     site = office_site(np.random.default_rng(0))
     if args.profile:
-        profiler = cProfile.Profile()
-        profiler.enable()
-        time_filter(site, 100, 20, 3, 10)
-        profiler.disable()
-        pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
+        profile(site, args.kernel, args.particles)
         return
     counts = tuple(int(v) for v in args.devices.split(","))
     heard = (5, 20, 50)
@@ -210,12 +233,39 @@ def main(argv: list[str] | None = None) -> None:
     ):
         n = args.particles
         print(f"{title}: CPU µs per device update, N = {n}, median of {args.repeats}")
-        print(f"{'devices/batch':>14s}" + "".join(f"{f'{m} tx':>10s}" for m in heard))
+        print(f"{'':>14s}" + "".join(f"{f'{m} tx':>24s}" for m in heard))
+        print(f"{'devices/batch':>14s}" + f"{'numpy':>9s}{'numba':>8s}{'ratio':>7s}" * len(heard))
         for d in counts:
-            row = [fn(site, d, m, args.warmup, args.repeats, n) for m in heard]
-            print(f"{d:>14d}" + "".join(f"{v:>10.0f}" for v in row))
+            cells = [fn(site, d, m, args.warmup, args.repeats, n) for m in heard]
+            row = "".join(f"{c['numpy']:>9.0f}{c['numba']:>8.0f}{ratio(c):>7.1f}" for c in cells)
+            print(f"{d:>14d}" + row)
         print()
     print(f"load average at end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+
+
+def ratio(cell: dict[str, float]) -> float:
+    """Return the reference's time over the kernel's: the speed-up."""
+    return cell["numpy"] / cell["numba"]
+
+
+def profile(site: SiteModel, kernel: str, n: int) -> None:
+    """Print a cProfile of one kernel's updates of 100 devices hearing 20 transmitters."""
+    params = ParticleFilterParams(n_particles=n, kernel=kernel)  # type: ignore[arg-type]
+    model = build_floor_models(site, params)[0]
+    walkers = Walkers(site, 100, np.random.default_rng(20))
+    bank = ParticleBank(n, 100)
+    slots = np.array([bank.allocate() for _ in range(100)])
+    rngs = [np.random.default_rng(i) for i in range(100)]
+    profiler = cProfile.Profile()
+    for step in range(13):
+        walkers.step()
+        inputs = filter_inputs(walkers, slots, rngs, 1000 * (step + 1), 20)
+        # the first three updates compile (or load) the kernel and converge the filters
+        if step == 3:
+            profiler.enable()
+        update_filters(bank, model, inputs, params)
+    profiler.disable()
+    pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,10 @@ Where each part lives (import from the modules; the package exports nothing):
 - ``estimate``: weighted mean, direction and 68% radius of each cloud;
 - ``inputs``: one filter's inputs per window and step 4's readings table;
 - ``bank``: ``ParticleBank``, the stacked storage of many filters;
+- ``kernel``: compiled loops for the per-particle work (moves and the wall
+  check, likelihood, resampling, estimate), reproducing the numpy steps
+  above bit for bit; ``ParticleFilterParams.kernel`` picks either;
 - ``update``: ``update_filters``, steps 1–11 for all due filters of a floor,
-  one numpy call per operation (the likelihood a gather from the floor's
-  precomputed ``RssiGrid``).
+  one numpy call or compiled loop per operation (the likelihood a gather
+  from the floor's precomputed ``RssiGrid``).
 """

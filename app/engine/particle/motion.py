@@ -120,28 +120,34 @@ def walk_displacement(
     return step * np.sin(direction), step * np.cos(direction), direction
 
 
-def move_particles(
-    model: FloorModel,
-    x: np.ndarray,
-    y: np.ndarray,
+def displacements(
     alpha: np.ndarray,
     inputs: list[FilterInput],
     noise: np.ndarray,
     p: ParticleFilterParams,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Step 2 for moving filters: the window's move of every particle, checked against the plan.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for moving filters: each particle's intended move and direction.
 
-    A blocked particle stays put and takes the random direction (2u - 1) π
-    from the uniform that drew its heading error: that draw only shaped the
-    move it did not make, so it is still an independent uniform.
+    Parameters
+    ----------
+    alpha : ndarray of float32, shape (R, N)
+        Current particle directions (rad).
+    noise : ndarray of float32, shape (R, 2, N)
+        The rows' motion uniforms.
+
+    Returns
+    -------
+    dx, dy, direction : ndarray of float32, shape (R, N)
+        Moves (m) and directions (rad) of the particles that make their move.
+    long : ndarray of bool, shape (R,)
+        Rows whose moves may exceed ``max_move_m`` (random walks, windows of
+        many steps) and must be shortened to it.
     """
     noise_t = noise.transpose(1, 0, 2)
     walking = np.array([i.step_length.size == 0 for i in inputs])
-    # rows whose moves may exceed max_move_m: random walks, and windows of many steps
-    # (a step's length error is at most √3 σ_L)
+    # a step's length error is at most √3 σ_L
     error = np.sqrt(3.0) * p.step_length_std_m
     longest = np.array([i.step_length.sum() + i.step_length.size * error for i in inputs])
-    may_be_long = walking | (longest > p.max_move_m)
     dx = np.empty(alpha.shape, np.float32)
     dy = np.empty(alpha.shape, np.float32)
     direction = np.empty(alpha.shape, np.float32)
@@ -156,20 +162,61 @@ def move_particles(
             length, heading = steps_table(chosen)
             out = window_displacement(length, heading, alpha[rows], noise_t[:, rows], p)
         dx[rows], dy[rows], direction[rows] = out
-    # moves longer than max_move_m are shortened to it
-    rows = np.flatnonzero(may_be_long)
+    return dx, dy, direction, walking | (longest > p.max_move_m)
+
+
+def settle_moves(
+    model: FloorModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    direction: np.ndarray,
+    turn: np.ndarray,
+    long: np.ndarray,
+    max_move_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2: make the moves the plan allows; a blocked particle stays put and turns at random.
+
+    Moves of ``long`` rows are first shortened to ``max_move_m``. A blocked
+    particle takes the direction (2u - 1) π from ``turn``, the uniform that
+    drew its heading error: that draw only shaped the move it did not make,
+    so it is still an independent uniform.
+
+    Parameters
+    ----------
+    x, y, dx, dy, direction, turn : ndarray of float32, shape (R, N)
+    long : ndarray of bool, shape (R,)
+
+    Returns
+    -------
+    x, y, alpha : ndarray of float32, shape (R, N)
+    """
+    rows = np.flatnonzero(long)
     if rows.size:
         norm = np.hypot(dx[rows], dy[rows])
-        scale = np.minimum(1.0, np.float32(p.max_move_m) / np.maximum(norm, 1e-6))
+        scale = np.minimum(1.0, np.float32(max_move_m) / np.maximum(norm, 1e-6))
         dx[rows] *= scale
         dy[rows] *= scale
     nx, ny = x + dx, y + dy
     ok = moves_free(model.walls, x, y, nx, ny)
-    x = np.where(ok, nx, x)
-    y = np.where(ok, ny, y)
     # α = θ for a made move, (2u - 1) π for a blocked one
-    alpha = np.where(ok, direction, (2.0 * noise_t[1] - 1.0) * np.float32(np.pi))
-    return x, y, alpha
+    alpha = np.where(ok, direction, (2.0 * turn - 1.0) * np.float32(np.pi))
+    return np.where(ok, nx, x), np.where(ok, ny, y), alpha
+
+
+def move_particles(
+    model: FloorModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    alpha: np.ndarray,
+    inputs: list[FilterInput],
+    noise: np.ndarray,
+    p: ParticleFilterParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for moving filters: the window's move of every particle, checked against the plan."""
+    dx, dy, direction, long = displacements(alpha, inputs, noise, p)
+    return settle_moves(model, x, y, dx, dy, direction, noise[:, 1], long, p.max_move_m)
 
 
 def pull_towards_fixes(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from app.engine.pathloss import PathLossParams
 
@@ -62,6 +63,10 @@ class ParticleFilterParams:
     chunk : int
         Filters per numpy call: 64 amortise numpy's per-call cost over
         64 × N particles (measured against 16, 32 and 128 with ``bench.engine``).
+    kernel : {"numba", "numpy"}
+        Who runs the per-particle loops (moves and the wall check, likelihood,
+        resampling, estimate): the compiled ``kernel`` module, or the numpy
+        reference it reproduces.
     """
 
     n_particles: int = 1000
@@ -83,3 +88,4 @@ class ParticleFilterParams:
     pathloss: PathLossParams = field(default_factory=PathLossParams)
     unheard_dbm: float = -100.0
     chunk: int = 64
+    kernel: Literal["numba", "numpy"] = "numba"

@@ -8,25 +8,43 @@ devices share its batch.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from app.engine.particle import estimate, kernel, motion, weights
 from app.engine.particle.bank import ParticleBank
-from app.engine.particle.estimate import FilterEstimate, cloud_estimate
+from app.engine.particle.estimate import FilterEstimate
 from app.engine.particle.floor_model import FloorModel, scatter
 from app.engine.particle.inputs import FilterInput, readings_table
-from app.engine.particle.motion import move_particles, pull_towards_fixes
+from app.engine.particle.motion import pull_towards_fixes
 from app.engine.particle.mutation import mutate_and_centre
 from app.engine.particle.params import ParticleFilterParams
-from app.engine.particle.weights import (
-    alive_count,
-    log_likelihood,
-    needs_resampling,
-    resample_rows,
-    reweight,
-)
+from app.engine.particle.weights import alive_count, needs_resampling, reweight
+
+
+@dataclass(frozen=True)
+class _Loops:
+    """The per-particle steps of one implementation, each with the numpy reference's signature."""
+
+    move: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]
+    log_likelihood: Callable[..., np.ndarray]
+    resample: Callable[..., None]
+    estimate: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+
+
+_LOOPS = {
+    "numpy": _Loops(
+        motion.move_particles,
+        weights.log_likelihood,
+        weights.resample_rows,
+        estimate.cloud_estimate,
+    ),
+    "numba": _Loops(
+        kernel.move_particles, kernel.log_likelihood, kernel.resample_rows, kernel.cloud_estimate
+    ),
+}
 
 
 def update_filters(
@@ -101,6 +119,7 @@ def _update_chunk(
 ) -> list[FilterEstimate]:
     """Run steps 1–11 for at most ``p.chunk`` filters of one floor."""
     n = p.n_particles
+    loops = _LOOPS[p.kernel]
     slots = np.array([i.slot for i in inputs], dtype=np.intp)
     t = np.array([i.t for i in inputs], dtype=np.int64)
     # consecutive slots are worked on in place, others copied out and back
@@ -129,7 +148,7 @@ def _update_chunk(
     # Step 2: motion, then the pull of positional measurements.
     if moving.any():
         sel = _select(moving)
-        x[sel], y[sel], alpha[sel] = move_particles(
+        x[sel], y[sel], alpha[sel] = loops.move(
             model,
             x[sel],
             y[sel],
@@ -174,7 +193,7 @@ def _update_chunk(
     # Step 10.
     if weigh.any():
         sel = _select(weigh)
-        ll = log_likelihood(model, x[sel], y[sel], tx[sel], rssi[sel], count[sel], valid[sel])
+        ll = loops.log_likelihood(model, x[sel], y[sel], tx[sel], rssi[sel], count[sel], valid[sel])
         w[sel] = reweight(w[sel], ll)
         bank.last_weights[slots[sel]] = t[sel]
     bank.last_radio[slots[radio]] = t[radio]
@@ -184,9 +203,9 @@ def _update_chunk(
     if resample.any():
         picked = np.flatnonzero(resample)
         u = np.array([inputs[r].rng.random() for r in picked.tolist()])
-        resample_rows(x, y, alpha, w, picked, u)
+        loops.resample(x, y, alpha, w, picked, u)
 
-    mx, my, heading, radius = cloud_estimate(x, y, alpha, w)
+    mx, my, heading, radius = loops.estimate(x, y, alpha, w)
     if not contiguous:
         bank.x[slots], bank.y[slots], bank.alpha[slots], bank.w[slots] = x, y, alpha, w
     bank.sampled[slots] = True

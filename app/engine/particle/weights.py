@@ -103,12 +103,18 @@ def log_likelihood(
     -------
     ndarray, shape (R, N)
     """
+    local, cw = reading_weights(model, tx, count, valid)
+    return grid_log_likelihood(model.grid, model.grid.cell_index(x, y), local, rssi, cw)
+
+
+def reading_weights(
+    model: FloorModel, tx: np.ndarray, count: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return each reading's raster column and weight n_m / (2 σ_m²) (0 for padding), (R, M)."""
     sigma = np.where(valid, model.sigma[tx], 1.0)
     # c_m = n_m / (2 σ_m²), zero for padding
     cw = np.where(valid, count / (2.0 * sigma * sigma), 0.0)
-    cells = model.grid.cell_index(x, y)
-    local = np.maximum(model.local[tx], 0)
-    return grid_log_likelihood(model.grid, cells, local, rssi, cw)
+    return np.maximum(model.local[tx], 0), cw
 
 
 def resample_rows(
