@@ -280,6 +280,34 @@ def test_the_in_process_stages_are_the_server_on_its_own_build(
         assert np.allclose(in_process.error, server.error, atol=2e-3)
 
 
+@needs_site1
+def test_the_history_refines_a_stored_track_by_the_full_backward_pass(
+    client: TestClient, settings: Settings, built_site: dict[str, Any], walks: list[Path]
+) -> None:
+    sid = built_site["site_id"]
+    walk = read_walk(walks[N_SURVEYS], FLOOR)
+    _replay(client, sid, "warm-up", walks[N_SURVEYS])
+    answered = _replay_walk(client, sid, "full-pass", walks[N_SURVEYS], "scan")
+    # what only the history keeps is not sent to clients
+    assert answered and not any("odometry_x" in p for p in answered)
+    url = f"/v1/sites/{sid}/devices/full-pass/positions"
+    r = client.get(url, params={"smoothed": "true", "limit": 10_000}, headers=make_admin())
+    assert r.status_code == 200, r.text
+    refined = r.json()["items"]
+    live = [p for p in answered if not p["smoothed"]]
+    assert [p["t"] for p in refined] == [p["t"] for p in live]
+    assert all(p["smoothed"] for p in refined)
+    assert any(abs(a["x"] - b["x"]) > 0.01 for a, b in zip(refined, live, strict=True))
+    # it is the engine's full pass over the live track, from the odometry stored with it
+    engines = load_engines(settings.resolved_database_url, sid, settings)
+    stages = replay_stages(engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings)
+    (in_process,) = stages.scores[STAGES[3]]
+    served = score_walk(walk.waypoints, 0, estimates_from_positions(refined, [FLOOR]))
+    assert np.allclose(in_process.error, served.error, atol=0.02)
+    bad = client.get(url, params={"smoothed": "maybe"}, headers=make_admin())
+    assert bad.status_code == 422 and "smoothed" in bad.text
+
+
 def _live(positions: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [p for p in positions if not p["smoothed"]]
 
