@@ -32,8 +32,8 @@ from app.core.db import make_engine, make_sessionmaker
 from app.core.time import now_ms
 from app.workers.process import handle_safely
 from app.workers.shard import Shard
+from app.workers.sites import SiteCache
 from app.workers.snapshot_store import RedisSnapshots
-from app.workers.trackers import SiteEngines
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ class RedisWorker:
         self.sessions = make_sessionmaker(engine=self.engine)
         self.snapshots = RedisSnapshots(self.client)
         self.shards: dict[int, Shard] = {}
-        self.engines: dict[str, SiteEngines] = {}
+        self.sites = SiteCache(settings=settings, sessions=self.sessions)
         self.lease_ms = int(settings.lease_s * 1000)
         self._renew = self.client.register_script(_RENEW)
         self._release = self.client.register_script(_RELEASE)
@@ -259,7 +259,7 @@ class RedisWorker:
             sessions=self.sessions,
             clock=now_ms,
             snapshots=self.snapshots,
-            engines=self.engines,
+            sites=self.sites,
         )
         # entries a previous owner read but never acknowledged are ours now, oldest first
         claimed = 0
@@ -295,8 +295,11 @@ class RedisWorker:
 
     def run(self, stop: threading.Event) -> None:
         """Process until ``stop`` is set, then flush and hand the shards back."""
+        # every site built before taking a shard: a new device's first batch must not wait
+        self.sites.poll(wait=True)
         log.info("%s started", self.name)
         while not stop.is_set():
+            self.sites.poll()
             if time.monotonic() - self._last_lease >= self.settings.lease_s / 3:
                 self._manage_leases()
                 self._last_lease = time.monotonic()
@@ -319,6 +322,7 @@ class RedisWorker:
         for shard_id in list(self.shards):
             self._hand_back(shard_id)
         self.client.delete(f"locus:worker:{self.name}")
+        self.sites.close()
         self.engine.dispose()
 
 

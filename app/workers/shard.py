@@ -8,7 +8,6 @@ are updated together: one engine call per site per round of messages.
 
 from __future__ import annotations
 
-import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -23,14 +22,11 @@ from app.core.identity import DeviceKey
 from app.devices.service import touch_devices
 from app.engine.samples import Batch, Estimate
 from app.positions.models import PositionRecord
-from app.sites.assembly import assemble_site
-from app.sites.models import Site
 from app.workers import snapshots
 from app.workers.device import DeviceSession
+from app.workers.sites import SiteCache
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
 from app.workers.trackers import BatchEngine, DeviceTracker, SiteEngines
-
-log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
 Clock = Callable[[], int]
@@ -52,35 +48,20 @@ class Shard:
         sessions: sessionmaker[Session],
         clock: Clock,
         snapshots: SnapshotStore | None = None,
-        engines: dict[str, SiteEngines] | None = None,
+        sites: SiteCache | None = None,
     ) -> None:
         self.shard = shard
         self.settings = settings
         self.sessions = sessions
         self.clock = clock
         self.store = snapshots or DatabaseSnapshots()
-        # shards of one process share their sites' engines: a mall's rasters are tens of MB
-        self.engines: dict[str, SiteEngines] = {} if engines is None else engines
+        self.sites = sites or SiteCache(settings=settings, sessions=sessions)
         self.devices: dict[DeviceKey, DeviceSession] = {}
         self.counters: Counter[str] = Counter()
         self.update_seconds = 0.0
         self._scanned_at = 0
 
     # -- sites and devices -------------------------------------------------------------
-
-    def _site(self, db: Session, site_id: str, version: int) -> SiteEngines | None:
-        cached = self.engines.get(site_id)
-        if cached is not None and cached.site.version >= version:
-            return cached
-        row = db.get(Site, site_id)
-        if row is None:
-            self.engines.pop(site_id, None)
-            return None
-        loaded = assemble_site(db=db, site=row, raster_cell=self.settings.raster_cell)
-        engines = SiteEngines.for_site(loaded)
-        self.engines[site_id] = engines
-        log.info("shard %d loaded site %s v%d", self.shard, site_id, loaded.version)
-        return engines
 
     def _device(self, db: Session, device_id: str, engines: SiteEngines, now: int) -> DeviceSession:
         """Return the session of ``device_id`` in the engines' site, resumed from its snapshot
@@ -129,7 +110,7 @@ class Shard:
                     "site_id": msg["site_id"],
                     "device_id": msg["device_id"],
                 }
-                engines = self._site(db, msg["site_id"], msg["version"])
+                engines = self.sites.get(db, msg["site_id"], msg["version"])
                 if engines is None:
                     self.counters["dropped_unknown_site"] += 1
                     results.append(
