@@ -5,10 +5,14 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+import redis
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy import exc as sa
 from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.core.outages import RETRY_AFTER_S, is_outage
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +165,20 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error", exc_info=exc)
         return JSONResponse(error_body("internal", "internal server error"), 500)
+
+    async def _storage(request: Request, exc: Exception) -> JSONResponse:
+        if not is_outage(exc):
+            return await _unexpected(request, exc)
+        log.warning("storage unavailable: %s %s: %s", request.method, request.url.path, exc)
+        store = "Redis" if isinstance(exc, redis.RedisError) else "the database"
+        return JSONResponse(
+            error_body("unavailable", f"{store} is unavailable; retry later"),
+            503,
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+
+    for kind in (sa.DBAPIError, sa.TimeoutError, redis.ConnectionError, redis.TimeoutError):
+        app.add_exception_handler(kind, _storage)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:

@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
 from app.core.db import session_scope
+from app.core.outages import is_outage
 from app.sites.assembly import assemble_site
 from app.sites.models import Site
 from app.workers.trackers import SiteEngines
@@ -124,6 +125,9 @@ class SiteCache:
                 continue
             del self._builds[site_id]
             error = build.exception()
+            if error is not None and is_outage(error):
+                log.warning("building site %s v%d waits for storage: %s", site_id, version, error)
+                continue
             if error is not None:
                 log.error("building site %s v%d failed", site_id, version, exc_info=error)
                 self._failed[site_id] = version
