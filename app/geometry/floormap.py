@@ -109,8 +109,8 @@ def _open_ring(geometry: dict[str, Any]) -> str | None:
     one silently, drawing an edge the map's author never drew.
     """
     coords = geometry.get("coordinates")
-    polygons = coords if geometry.get("type") == "MultiPolygon" else [coords]
-    for p, rings in enumerate(polygons or []):
+    polygons: list[Any] = list(coords or []) if geometry["type"] == "MultiPolygon" else [coords]
+    for p, rings in enumerate(polygons):
         for r, ring in enumerate(rings or []):
             if len(ring) < 4 or list(ring[0]) != list(ring[-1]):
                 where = f"ring {r}" if len(polygons) == 1 else f"ring {r} of polygon {p}"
