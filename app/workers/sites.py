@@ -97,8 +97,9 @@ class SiteCache:
             # the database is away: devices keep the engines they have, the next poll retries
             log.warning("could not read the sites' versions: %s", exc.__class__.__name__)
             return
-        for site_id in set(self.engines) - set(versions):
-            del self.engines[site_id]
+        for site_id in (set(self.engines) | set(self._failed)) - set(versions):
+            self.engines.pop(site_id, None)
+            self._failed.pop(site_id, None)
         for site_id, version in versions.items():
             cached = self.engines.get(site_id)
             built = -1 if cached is None else cached.site.version

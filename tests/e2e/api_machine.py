@@ -220,15 +220,16 @@ class ApiMachine(RuleBasedStateMachine):
         if key.role == "viewer":
             assert r.status_code == 403, r.text
             return
-        if not self.live(key.site):
-            assert r.status_code == 404, r.text
-            return
         values = [w["rssi"] for w in wifi]
         sound = [v for v in values if isinstance(v, float) and -150 <= v <= 0]
-        # a string that is no number breaks the body's structure; impossible values are
-        # dropped sample by sample, and a batch left with none is refused
-        if "loud" in values or not sound:
+        # a null or a word where a number belongs breaks the body's structure; impossible
+        # values are dropped sample by sample, and a batch left with none is refused; the
+        # body is judged before its site is looked up
+        if None in values or "loud" in values or not sound:
             assert r.status_code == 422, r.text
+            return
+        if not self.live(key.site):
+            assert r.status_code == 404, r.text
             return
         assert r.status_code == (200 if wait else 202), r.text
         self.clock[(key.site, device)] = max(w["t"] for w in wifi) + 1000
