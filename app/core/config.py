@@ -251,6 +251,19 @@ class Settings(BaseSettings):
         "jitter at a doorway does not flicker; 0 reports every crossing.",
     )
     raster_cell: float = Field(default=0.25, gt=0, le=10, description="Floor raster cell (m).")
+    warm_sites: bool = Field(
+        default=True,
+        description="Workers build every site's rasters and engines when they start and when "
+        "the site changes, so a new device's first batch does not wait for them; off, a "
+        "worker builds a site on its first batch there and holds only the sites it serves.",
+    )
+    site_poll_s: float = Field(
+        default=1.0,
+        gt=0,
+        le=3600,
+        description="Wall seconds between a worker's reads of the sites' map versions, to "
+        "warm the sites that changed and forget deleted ones (with warm_sites).",
+    )
 
     # Background jobs: radio-map builds and track fits.
     job_lease_s: float = Field(

@@ -47,6 +47,10 @@ class Base(DeclarativeBase):
     metadata = MetaData(naming_convention=NAMING)
 
 
+CONNECT_TIMEOUT_S = 5
+"""Seconds a new PostgreSQL connection may take before the attempt counts as an outage."""
+
+
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     # WAL lets the API read while workers write; a busy timeout instead of
     # "database is locked" when two processes commit at once.
@@ -67,7 +71,15 @@ def make_engine(url: str) -> Engine:
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+    # pre-ping: connections pooled before a server restart are replaced, not handed out dead;
+    # a connect timeout: an unreachable server fails a request in seconds (503), not minutes
+    return create_engine(
+        url,
+        pool_pre_ping=True,
+        pool_size=10,
+        max_overflow=20,
+        connect_args={"connect_timeout": CONNECT_TIMEOUT_S},
+    )
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:

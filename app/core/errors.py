@@ -5,10 +5,15 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+import redis
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy import exc as sa
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Route
+
+from app.core.outages import RETRY_AFTER_S, is_outage
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +175,23 @@ def validation_failed(errors: list[Any], message: str = "request failed validati
     return Invalid(message, details=details)
 
 
+def _other_methods(request: Request) -> list[str]:
+    """Return the methods of the routes whose path matches the request's (none: no route).
+
+    The dashboard is mounted at ``/`` and answers every path no route took, so a
+    route asked with the wrong method would read as missing (404) rather than 405.
+    """
+    methods: set[str] = set()
+    routes = list(request.app.routes)
+    while routes:
+        route = routes.pop()
+        if isinstance(route, Route) and route.matches(request.scope)[0] is Match.PARTIAL:
+            methods |= route.methods or set()
+        # an included router keeps its routes, their paths prefixed, in its original router
+        routes.extend(getattr(getattr(route, "original_router", None), "routes", ()))
+    return sorted(methods)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Render every error, ours or the framework's, as the contract's error object."""
 
@@ -198,8 +220,31 @@ def install_error_handlers(app: FastAPI) -> None:
         log.exception("unhandled error", exc_info=exc)
         return JSONResponse(error_body("internal", "internal server error"), 500)
 
+    async def _storage(request: Request, exc: Exception) -> JSONResponse:
+        if not is_outage(exc):
+            return await _unexpected(request, exc)
+        log.warning("storage unavailable: %s %s: %s", request.method, request.url.path, exc)
+        store = "Redis" if isinstance(exc, redis.RedisError) else "the database"
+        return JSONResponse(
+            error_body("unavailable", f"{store} is unavailable; retry later"),
+            503,
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+
+    for kind in (sa.DBAPIError, sa.TimeoutError, redis.ConnectionError, redis.TimeoutError):
+        app.add_exception_handler(kind, _storage)
+
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        allowed = _other_methods(request) if exc.status_code == 404 else []
+        if allowed:
+            return JSONResponse(
+                error_body(
+                    "method_not_allowed", f"{request.method} not allowed; use {', '.join(allowed)}"
+                ),
+                405,
+                headers={"Allow": ", ".join(allowed)},
+            )
         code = _CODES.get(exc.status_code, "error")
         return JSONResponse(
             error_body(code, str(exc.detail)),

@@ -299,6 +299,12 @@ def validate_screened(
         if data is None or any(e["type"] not in VALUE_ERRORS for e in exc.errors()):
             raise
         data, drops = screen_samples(data, kinds)
+        if drops and not any(data.get(kind) for kind in kinds):
+            # name why nothing is left, not just that nothing is
+            raise Invalid(
+                f"every sample was dropped ({len(drops)}): none is physically possible",
+                details=drops[:MAX_REPORTED],
+            ) from exc
         body = model.model_validate(data)
     body, far = screen_times(
         body, tuple(kinds), anchors, max_offset_ms=max_offset_ms, earlier=drops

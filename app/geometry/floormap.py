@@ -128,6 +128,22 @@ def _invalidity(geom: BaseGeometry) -> str:
     return f"invalid geometry: {_VALIDITY[match.group(1)]} at ({x:g}, {y:g})"
 
 
+def _open_ring(geometry: dict[str, Any]) -> str | None:
+    """Return what is wrong with a polygon's rings (None: each is closed, with 4+ positions).
+
+    GeoJSON rings repeat their first position last; shapely would close an open
+    one silently, drawing an edge the map's author never drew.
+    """
+    coords = geometry.get("coordinates")
+    polygons: list[Any] = list(coords or []) if geometry["type"] == "MultiPolygon" else [coords]
+    for p, rings in enumerate(polygons):
+        for r, ring in enumerate(rings or []):
+            if len(ring) < 4 or list(ring[0]) != list(ring[-1]):
+                where = f"ring {r}" if len(polygons) == 1 else f"ring {r} of polygon {p}"
+                return f"{where} must be closed (last position = first) with at least 4 positions"
+    return None
+
+
 def _number(props: dict[str, Any], key: str) -> float | None:
     value = props.get(key)
     if value is None:
@@ -238,6 +254,9 @@ def parse_floor_map(doc: Any) -> FloorMap:
                 seen_ids[emitter.id] = index
                 fmap.emitters.append(emitter)
                 continue
+            ring_problem = _open_ring(geometry) if "Polygon" in geometry["type"] else None
+            if ring_problem is not None:
+                raise ValueError(ring_problem)
             geom = shape(geometry)
             if geom.is_empty:
                 raise ValueError("geometry is empty")

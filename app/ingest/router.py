@@ -69,6 +69,13 @@ def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[s
     return batch, report(drops)
 
 
+def _may_ingest(principal: Principal) -> None:
+    """Refuse a viewer key before its body is read: what it sends is never processed, so the
+    body's faults are not its business."""
+    if principal.role not in ("admin", "device"):
+        raise Forbidden("only device and admin keys may ingest")
+
+
 def _answer(result: dict[str, Any], wait: bool) -> JSONResponse:
     return JSONResponse(result, status_code=200 if wait else 202)
 
@@ -112,6 +119,7 @@ async def ingest(
     wait: bool = Query(False, description="Answer after processing, with the positions"),
 ) -> JSONResponse:
     """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
+    _may_ingest(principal)
     raw = await _read_body(request, state.settings.max_body_bytes)
     result = await _ingest_one(raw, principal=principal, state=state, runtime=runtime, wait=wait)
     return _answer(result, wait)
@@ -137,8 +145,7 @@ async def ingest_bulk(
     4xx, "error"}``. A batch for a site the key may not report to is refused alone (403).
     The body is refused whole only when its own structure is wrong or it is too large.
     """
-    if principal.role not in ("admin", "device"):
-        raise Forbidden("only device and admin keys may ingest")
+    _may_ingest(principal)
     raw = await _read_body(request, state.settings.bulk_max_body_bytes)
     items = service.bulk_items(raw, state.settings)
 
@@ -172,6 +179,7 @@ async def ingest_locator(
     ),
 ) -> JSONResponse:
     """Accept a locator's sightings of tags; each goes to its tag's filter."""
+    _may_ingest(principal)
     raw = await _read_body(request, state.settings.max_body_bytes)
     batch = _parse(LocatorBatch, raw)
     result = await flows.ingest_locator(

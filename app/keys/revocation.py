@@ -14,6 +14,7 @@ from datetime import timedelta
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.core.outages import is_outage
 from app.core.security import Principal
 from app.keys.cache import KeyCache
 from app.keys.service import recently_revoked
@@ -60,8 +61,11 @@ class Revocations:
             await asyncio.sleep(self.poll_s)
             try:
                 found = await asyncio.to_thread(self._recent)
-            except SQLAlchemyError:  # the database may be away for a while; the next poll retries
-                log.exception("could not read revoked keys")
+            except SQLAlchemyError as exc:  # the database may be away; the next poll retries
+                if is_outage(exc):
+                    log.warning("could not read revoked keys: %s", exc.__class__.__name__)
+                else:
+                    log.exception("could not read revoked keys")
                 continue
             if found:
                 self.revoked(found)

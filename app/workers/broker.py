@@ -45,6 +45,10 @@ class Broker(Protocol):
         """Return the shard's published, unacknowledged batches."""
         ...
 
+    def available(self) -> bool:
+        """Return whether the broker takes batches now (False while Redis is away)."""
+        ...
+
     def healthy(self) -> bool:
         """Return whether every shard has a live consumer."""
         ...
@@ -184,6 +188,10 @@ class MemoryBroker:
     def backlog(self, shard: int) -> int:
         """Return the shard's unacknowledged batches."""
         return len(self._slots[shard].pending)
+
+    def available(self) -> bool:
+        """Return True: batches wait in this process for a worker, restarted or not."""
+        return True
 
     def healthy(self) -> bool:
         """Return whether every worker process is alive and has said it is ready."""

@@ -13,6 +13,7 @@ from app.core.db import make_engine, make_sessionmaker
 from app.core.logging import configure_logging
 from app.core.time import now_ms
 from app.workers.shard import Shard
+from app.workers.sites import SiteCache
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +71,11 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
 
     signal.signal(signal.SIGTERM, _terminate)
     engine = make_engine(settings.resolved_database_url)
-    shard = Shard(
-        shard=shard_id, settings=settings, sessions=make_sessionmaker(engine), clock=now_ms
-    )
+    sessions = make_sessionmaker(engine)
+    sites = SiteCache(settings=settings, sessions=sessions)
+    # ready once every site is built: a new device's first batch must not wait for rasters
+    sites.poll(wait=True)
+    shard = Shard(shard=shard_id, settings=settings, sessions=sessions, clock=now_ms, sites=sites)
     outbox.put([{"type": "ready", "shard": shard_id}])
     last_stats = 0.0
     while not stopping:
@@ -85,8 +88,10 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
         emitted = shard.tick()
         if emitted:
             outbox.put(emitted)
+        sites.poll()
         if time.monotonic() - last_stats >= settings.worker_stats_every_s:
             outbox.put([shard.stats()])
             last_stats = time.monotonic()
     outbox.put(shard.drain() + [shard.stats()])
+    sites.close()
     engine.dispose()

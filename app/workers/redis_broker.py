@@ -29,11 +29,12 @@ import redis
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
+from app.core.outages import is_outage, retry_through_outage
 from app.core.time import now_ms
 from app.workers.process import handle_safely
 from app.workers.shard import Shard
+from app.workers.sites import SiteCache
 from app.workers.snapshot_store import RedisSnapshots
-from app.workers.trackers import SiteEngines
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,7 @@ class RedisBroker:
         self._outgoing: deque[tuple[int, bytes]] = deque()
         self._wake = threading.Event()
         self._stopping = threading.Event()
+        self._down = threading.Event()
         self._backlog = [0] * self.shards
         self._owned = [False] * self.shards
         self._threads: list[threading.Thread] = []
@@ -110,14 +112,18 @@ class RedisBroker:
         self._backlog[shard] += 1
         self._wake.set()
 
+    def available(self) -> bool:
+        """Return whether Redis answered the last time this node spoke to it."""
+        return not self._down.is_set()
+
     def _publish_loop(self) -> None:
         while not self._stopping.is_set():
             self._wake.wait(0.1)
             self._wake.clear()
-            while self._outgoing:
+            while self._outgoing and not self._stopping.is_set():
+                batch = [self._outgoing.popleft() for _ in range(min(len(self._outgoing), 500))]
                 pipe = self.client.pipeline(transaction=False)
-                for _ in range(min(len(self._outgoing), 500)):
-                    shard, data = self._outgoing.popleft()
+                for shard, data in batch:
                     pipe.xadd(
                         stream_key(shard),
                         {"m": data},
@@ -126,8 +132,20 @@ class RedisBroker:
                     )
                 try:
                     pipe.execute()
-                except redis.RedisError:
-                    log.exception("publishing to Redis failed")
+                except redis.RedisError as exc:
+                    # accepted batches wait here, in order, until Redis takes them
+                    self._outgoing.extendleft(reversed(batch))
+                    self._went_down(exc, "publishing")
+                    self._stopping.wait(0.5)
+                    continue
+                self._down.clear()
+
+    def _went_down(self, exc: redis.RedisError, doing: str) -> None:
+        if not self._down.is_set():
+            log.warning(
+                "Redis unavailable while %s (%s); ingest answers 503 until it returns", doing, exc
+            )
+        self._down.set()
 
     def _listen(self) -> None:
         while not self._stopping.is_set():
@@ -138,8 +156,8 @@ class RedisBroker:
                     item = pubsub.get_message(timeout=0.2)
                     if item is not None:
                         self._on_results(json.loads(item["data"]))
-            except redis.RedisError:
-                log.exception("results subscription failed; resubscribing")
+            except redis.RedisError as exc:
+                self._went_down(exc, "listening for results")
                 time.sleep(0.5)
 
     def _watch(self) -> None:
@@ -152,8 +170,12 @@ class RedisBroker:
                     if info is not None:
                         self._backlog[shard] = int(info.get("lag") or 0) + int(info["pending"])
                     self._owned[shard] = bool(self.client.exists(lease_key(shard)))
-            except redis.RedisError:
-                log.exception("reading stream backlog failed")
+            except redis.RedisError as exc:
+                self._went_down(exc, "reading the backlog")
+                continue
+            if self._down.is_set() and not self._outgoing:
+                log.warning("Redis is back")
+                self._down.clear()
 
     def backlog(self, shard: int) -> int:
         """Return the shard's undelivered plus unacknowledged entries (refreshed twice a second)."""
@@ -172,6 +194,8 @@ class RedisBroker:
         deadline = time.monotonic() + 5
         while self._outgoing and time.monotonic() < deadline:
             time.sleep(0.05)
+        if self._outgoing:
+            log.error("stopping with %d accepted batches Redis never took", len(self._outgoing))
         self._stopping.set()
         for thread in self._threads:
             thread.join(timeout=2)
@@ -219,12 +243,13 @@ class RedisWorker:
         self.sessions = make_sessionmaker(engine=self.engine)
         self.snapshots = RedisSnapshots(self.client)
         self.shards: dict[int, Shard] = {}
-        self.engines: dict[str, SiteEngines] = {}
+        self.sites = SiteCache(settings=settings, sessions=self.sessions)
         self.lease_ms = int(settings.lease_s * 1000)
         self._renew = self.client.register_script(_RENEW)
         self._release = self.client.register_script(_RELEASE)
         self._last_lease = 0.0
         self._last_stats = 0.0
+        self._settle_until = 0.0
 
     # -- leases ------------------------------------------------------------------------
 
@@ -234,12 +259,22 @@ class RedisWorker:
 
     def _manage_leases(self) -> None:
         for shard in list(self.shards):
-            if not self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms]):
-                log.warning("%s lost shard %d", self.name, shard)
-                # Another worker may run the shard already: storing positions or snapshots
-                # now could overwrite its newer ones, so the devices are only let go.
-                self.shards.pop(shard).close()
-        fair = math.ceil(self.settings.shards / self._live_workers())
+            if self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms]):
+                continue
+            # A lease that lapsed while Redis was away and that nobody took since is still
+            # ours, and so are the devices' buffered samples: keep the shard.
+            if self.client.set(lease_key(shard), self.name, nx=True, px=self.lease_ms):
+                log.info("%s kept shard %d through a lapsed lease", self.name, shard)
+                continue
+            log.warning("%s lost shard %d", self.name, shard)
+            # Another worker may run the shard already: storing positions or snapshots
+            # now could overwrite its newer ones, so the devices are only let go.
+            self.shards.pop(shard).close()
+        live = self._live_workers()
+        if time.monotonic() < self._settle_until:
+            # just back from a Redis outage: every worker first takes back its own shards
+            return
+        fair = math.ceil(self.settings.shards / live)
         for shard in range(self.settings.shards):
             if len(self.shards) >= fair:
                 break
@@ -259,7 +294,8 @@ class RedisWorker:
             sessions=self.sessions,
             clock=now_ms,
             snapshots=self.snapshots,
-            engines=self.engines,
+            sites=self.sites,
+            on_storage_wait=self._keep_leases,
         )
         # entries a previous owner read but never acknowledged are ours now, oldest first
         claimed = 0
@@ -277,14 +313,32 @@ class RedisWorker:
 
     # -- processing ------------------------------------------------------------------
 
+    def _keep_leases(self) -> None:
+        """Renew the held leases while a shard waits out a database outage, so that no other
+        worker takes a shard whose batches this one is still holding."""
+        if time.monotonic() - self._last_lease < self.settings.lease_s / 3:
+            return
+        try:
+            for shard in self.shards:
+                self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms])
+        except redis.RedisError:
+            return  # Redis is away too: the loop sorts the leases out when it is back
+        self._last_lease = time.monotonic()
+
     def _process(self, shard: int, entries: list[Any]) -> None:
         messages = [json.loads(fields[b"m"]) for _, fields in entries if fields]
         results = handle_safely(self.shards[shard], messages) if messages else []
-        pipe = self.client.pipeline(transaction=False)
-        if results:
-            pipe.publish(RESULTS, json.dumps(results, separators=(",", ":")))
-        pipe.xack(stream_key(shard), GROUP, *[entry_id for entry_id, _ in entries])
-        pipe.execute()
+
+        def report() -> None:
+            pipe = self.client.pipeline(transaction=False)
+            if results:
+                pipe.publish(RESULTS, json.dumps(results, separators=(",", ":")))
+            pipe.xack(stream_key(shard), GROUP, *[entry_id for entry_id, _ in entries])
+            pipe.execute()
+
+        # the positions are stored: acknowledge them once Redis is back (an entry left
+        # pending would be processed again, its positions suppressed as repeats)
+        retry_through_outage(report, what=f"{self.name}: acknowledging", on_wait=self._keep_leases)
 
     def _hand_back(self, shard_id: int) -> None:
         """Drain the shard (its devices snapshotted for the next owner) and release its lease."""
@@ -295,31 +349,62 @@ class RedisWorker:
 
     def run(self, stop: threading.Event) -> None:
         """Process until ``stop`` is set, then flush and hand the shards back."""
+        # every site built before taking a shard: a new device's first batch must not wait
+        self.sites.poll(wait=True)
         log.info("%s started", self.name)
+        down_since: float | None = None
         while not stop.is_set():
-            if time.monotonic() - self._last_lease >= self.settings.lease_s / 3:
-                self._manage_leases()
-                self._last_lease = time.monotonic()
-            if not self.shards:
-                stop.wait(0.2)
+            try:
+                self._round(stop)
+            except redis.RedisError as exc:
+                if not is_outage(exc) and "NOGROUP" not in str(exc):
+                    raise
+                if down_since is None:
+                    down_since = time.monotonic()
+                    log.warning("%s: Redis unavailable (%s); waiting for it", self.name, exc)
+                # leases lapse meanwhile: on its return, a worker takes back its own first
+                self._settle_until = math.inf
+                stop.wait(0.5)
                 continue
-            streams: dict[Any, Any] = {stream_key(s): ">" for s in self.shards}
-            response: Any = self.client.xreadgroup(GROUP, self.name, streams, count=500, block=50)
-            for key, entries in response or ():
-                name = key.decode() if isinstance(key, bytes) else key
-                shard_id = int(name.rsplit(":", 1)[1])
-                if shard_id in self.shards:
-                    self._process(shard_id, entries)
-            emitted = [m for shard in self.shards.values() for m in shard.tick()]
-            if time.monotonic() - self._last_stats >= 1.0:
-                emitted += [shard.stats() for shard in self.shards.values()]
-                self._last_stats = time.monotonic()
-            if emitted:
-                self.client.publish(RESULTS, json.dumps(emitted, separators=(",", ":")))
+            if down_since is not None:
+                log.warning("%s: Redis back after %.1f s", self.name, time.monotonic() - down_since)
+                down_since = None
+                self._settle_until = time.monotonic() + self.settings.lease_s
         for shard_id in list(self.shards):
             self._hand_back(shard_id)
         self.client.delete(f"locus:worker:{self.name}")
+        self.sites.close()
         self.engine.dispose()
+
+    def _round(self, stop: threading.Event) -> None:
+        """Renew leases when due, process what the owned streams hold, flush quiet devices."""
+        self.sites.poll()
+        if time.monotonic() - self._last_lease >= self.settings.lease_s / 3:
+            self._manage_leases()
+            self._last_lease = time.monotonic()
+        if not self.shards:
+            stop.wait(0.2)
+            return
+        streams: dict[Any, Any] = {stream_key(s): ">" for s in self.shards}
+        try:
+            response: Any = self.client.xreadgroup(GROUP, self.name, streams, count=500, block=50)
+        except redis.ResponseError as exc:
+            if "NOGROUP" in str(exc):
+                # Redis came back without its data: the streams start again
+                for shard in self.shards:
+                    ensure_group(self.client, shard)
+            raise
+        for key, entries in response or ():
+            name = key.decode() if isinstance(key, bytes) else key
+            shard_id = int(name.rsplit(":", 1)[1])
+            if shard_id in self.shards:
+                self._process(shard_id, entries)
+        emitted = [m for shard in self.shards.values() for m in shard.tick()]
+        if time.monotonic() - self._last_stats >= 1.0:
+            emitted += [shard.stats() for shard in self.shards.values()]
+            self._last_stats = time.monotonic()
+        if emitted:
+            self.client.publish(RESULTS, json.dumps(emitted, separators=(",", ":")))
 
 
 def redis_worker_main(settings_json: str) -> None:

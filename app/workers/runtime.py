@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.core.config import Settings
-from app.core.errors import DomainError, Overloaded, ProcessingFailed
+from app.core.errors import DomainError, Overloaded, ProcessingFailed, Unavailable
 from app.core.identity import DeviceKey
 from app.core.metrics import Metrics
+from app.core.outages import RETRY_AFTER_S
 from app.positions.hub import PositionHub
 from app.workers.broker import Broker, MemoryBroker
 from app.workers.redis_broker import LocalRedisWorkers, RedisBroker
@@ -103,8 +104,11 @@ class Runtime:
         ``flush`` (default: ``wait``) has the worker process the device's whole
         reorder buffer at once instead of holding its newest samples back.
 
-        Raises Overloaded when the device or its shard is over its bound.
+        Raises Overloaded when the device or its shard is over its bound, Unavailable
+        while the broker cannot take batches.
         """
+        if not self.broker.available():
+            raise Unavailable("Redis is unavailable; retry later", retry_after_s=RETRY_AFTER_S)
         key = (site_id, device_id)
         shard = shard_of(key, self.broker.shards)
         if self.inflight[key] >= self.settings.max_inflight_batches:

@@ -8,11 +8,10 @@ are updated together: one engine call per site per round of messages.
 
 from __future__ import annotations
 
-import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy import func, insert, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -20,21 +19,22 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.identity import DeviceKey
+from app.core.outages import retry_through_outage
 from app.devices.service import touch_devices
 from app.engine.samples import Batch, Estimate
 from app.positions.models import PositionRecord
-from app.sites.assembly import assemble_site
-from app.sites.models import Site
 from app.workers import snapshots
 from app.workers.device import DeviceSession
+from app.workers.sites import SiteCache
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
 from app.workers.trackers import BatchEngine, DeviceTracker, SiteEngines
-
-log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
 Clock = Callable[[], int]
 """The wall clock in epoch milliseconds."""
+Snapshot = tuple[DeviceSession, int, bytes]
+"""A device, the measurement time of its snapshot, and the snapshot."""
+T = TypeVar("T")
 
 
 class Shard:
@@ -52,35 +52,22 @@ class Shard:
         sessions: sessionmaker[Session],
         clock: Clock,
         snapshots: SnapshotStore | None = None,
-        engines: dict[str, SiteEngines] | None = None,
+        sites: SiteCache | None = None,
+        on_storage_wait: Callable[[], None] = lambda: None,
     ) -> None:
         self.shard = shard
         self.settings = settings
         self.sessions = sessions
         self.clock = clock
         self.store = snapshots or DatabaseSnapshots()
-        # shards of one process share their sites' engines: a mall's rasters are tens of MB
-        self.engines: dict[str, SiteEngines] = {} if engines is None else engines
+        self.sites = sites or SiteCache(settings=settings, sessions=sessions)
+        self.on_storage_wait = on_storage_wait
         self.devices: dict[DeviceKey, DeviceSession] = {}
         self.counters: Counter[str] = Counter()
         self.update_seconds = 0.0
         self._scanned_at = 0
 
     # -- sites and devices -------------------------------------------------------------
-
-    def _site(self, db: Session, site_id: str, version: int) -> SiteEngines | None:
-        cached = self.engines.get(site_id)
-        if cached is not None and cached.site.version >= version:
-            return cached
-        row = db.get(Site, site_id)
-        if row is None:
-            self.engines.pop(site_id, None)
-            return None
-        loaded = assemble_site(db=db, site=row, raster_cell=self.settings.raster_cell)
-        engines = SiteEngines.for_site(loaded)
-        self.engines[site_id] = engines
-        log.info("shard %d loaded site %s v%d", self.shard, site_id, loaded.version)
-        return engines
 
     def _device(self, db: Session, device_id: str, engines: SiteEngines, now: int) -> DeviceSession:
         """Return the session of ``device_id`` in the engines' site, resumed from its snapshot
@@ -120,57 +107,93 @@ class Shard:
 
     # -- processing ----------------------------------------------------------------------
 
+    def _storage(self, work: Callable[[Session], T], what: str) -> T:
+        """Run ``work`` in a transaction of its own, again and again through a storage outage.
+
+        The shard stalls while the database (or Redis) is away: its batches stay
+        unacknowledged in the broker, and what it computed is stored, not dropped,
+        once the store returns.
+        """
+
+        def attempt() -> T:
+            with session_scope(self.sessions) as db:
+                return work(db)
+
+        return retry_through_outage(
+            attempt, what=f"shard {self.shard}: {what}", on_wait=self.on_storage_wait
+        )
+
+    def _route(self, db: Session, messages: list[Message], now: int) -> list[DeviceSession | None]:
+        """Return each message's device session (None for an unknown site), loading its site
+        and its snapshot as needed; repeatable, as it changes nothing a retry would redo."""
+        routed: list[DeviceSession | None] = []
+        for msg in messages:
+            engines = self.sites.get(db, msg["site_id"], msg["version"])
+            routed.append(
+                None if engines is None else self._device(db, msg["device_id"], engines, now)
+            )
+        return routed
+
     def handle(self, messages: list[Message]) -> list[Message]:
-        """Process ingest messages; positions are stored before any result is returned."""
+        """Process ingest messages; positions are stored before any result is returned.
+
+        What the database must give (sites, snapshots of devices new here) is read
+        first, and what the round produced is written last, each retried through
+        an outage, so a device's samples are used once whatever the database does.
+        """
         started = time.perf_counter()
         results: list[Message] = []
         rows: list[Message] = []
-        with session_scope(self.sessions) as db:
-            work: list[tuple[DeviceSession | None, Batch | None]] = []
-            for msg in messages:
-                done: Message = {
-                    "type": "done",
-                    "batch_id": msg["batch_id"],
-                    "site_id": msg["site_id"],
-                    "device_id": msg["device_id"],
-                }
-                engines = self._site(db, msg["site_id"], msg["version"])
-                if engines is None:
-                    self.counters["dropped_unknown_site"] += 1
-                    results.append(
-                        done
-                        | {"accepted": 0, "late": 0, "duplicate": 0, "positions": [], "events": []}
-                    )
-                    work.append((None, None))
-                    continue
-                # a device's silence is timed from when its samples were taken in
-                now = self.clock()
-                device = self._device(db, msg["device_id"], engines, now)
-                accepted, late, duplicate = device.add(msg["samples"], now=now)
-                self.counters["samples"] += accepted
-                self.counters["late"] += late
-                self.counters["duplicate"] += duplicate
-                batch = self._take(device, flush=bool(msg.get("flush")))
-                results.append(done | {"accepted": accepted, "late": late, "duplicate": duplicate})
-                work.append((device, batch))
-            outputs = self._run(work)
-            now = self.clock()
-            for result, (routed, _), estimates in zip(results, work, outputs, strict=True):
-                if routed is None:
-                    continue
-                positions, events = self._emit(routed, estimates, now)
-                rows.extend(positions)
-                result.update(
-                    positions=positions,
-                    events=events,
-                    processed_t=routed.processed_t,
-                    processed_wifi_t=routed.processed_wifi_t,
+        # a device's silence is timed from when its samples were taken in
+        now = self.clock()
+        routed = self._storage(lambda db: self._route(db, messages, now), "reading devices")
+        work: list[tuple[DeviceSession | None, Batch | None]] = []
+        for msg, device in zip(messages, routed, strict=True):
+            done: Message = {
+                "type": "done",
+                "batch_id": msg["batch_id"],
+                "site_id": msg["site_id"],
+                "device_id": msg["device_id"],
+            }
+            if device is None:
+                self.counters["dropped_unknown_site"] += 1
+                results.append(
+                    done | {"accepted": 0, "late": 0, "duplicate": 0, "positions": [], "events": []}
                 )
+                work.append((None, None))
+                continue
+            accepted, late, duplicate = device.add(msg["samples"], now=now)
+            self.counters["samples"] += accepted
+            self.counters["late"] += late
+            self.counters["duplicate"] += duplicate
+            batch = self._take(device, flush=bool(msg.get("flush")))
+            results.append(done | {"accepted": accepted, "late": late, "duplicate": duplicate})
+            work.append((device, batch))
+        outputs = self._run(work)
+        now = self.clock()
+        for result, (device, _), estimates in zip(results, work, outputs, strict=True):
+            if device is None:
+                continue
+            positions, events = self._emit(device, estimates, now)
+            rows.extend(positions)
+            result.update(
+                positions=positions,
+                events=events,
+                processed_t=device.processed_t,
+                processed_wifi_t=device.processed_wifi_t,
+            )
+        touched = list({d.key: d for d, _ in work if d is not None}.values())
+        heard = [(d.key, d.max_t) for d in touched]
+        snaps = self._due_snapshots(touched, force=False)
+
+        def write(db: Session) -> None:
             if rows:
                 db.execute(insert(PositionRecord), [_row(p) for p in rows])
-            touched = list({d.key: d for d, _ in work if d is not None}.values())
-            touch_devices(db=db, heard=[(d.key, d.max_t) for d in touched], now=now)
-            self._save_snapshots(db, touched, force=False)
+            touch_devices(db=db, heard=heard, now=now)
+            self._write_snapshots(db, snaps)
+
+        self._storage(write, "storing positions")
+        self._saved(snaps)
         self.update_seconds += time.perf_counter() - started
         self.counters["positions"] += len(rows)
         return results
@@ -221,8 +244,11 @@ class Shard:
         self.counters["suppressed_repeats"] += len(estimates) - len(positions)
         return positions, events
 
-    def _flush(self, db: Session, devices: list[DeviceSession], now: int) -> list[Message]:
-        """Position everything the quiet ``devices`` buffer or their filters hold back; store it."""
+    def _flush(self, devices: list[DeviceSession], now: int) -> tuple[list[Message], list[Message]]:
+        """Position everything the quiet ``devices`` buffer or their filters hold back.
+
+        Returns the results to report and the position rows to store.
+        """
         results: list[Message] = []
         rows: list[Message] = []
         work = [(d, self._take(d, flush=True)) for d in devices]
@@ -241,10 +267,20 @@ class Shard:
                         "events": events,
                     }
                 )
-        if rows:
-            db.execute(insert(PositionRecord), [_row(p) for p in rows])
         self.counters["positions"] += len(rows)
-        return results
+        return results, rows
+
+    def _store_flushed(self, rows: list[Message], snaps: list[Snapshot], what: str) -> None:
+        """Store flushed positions and snapshots, through an outage."""
+
+        def write(db: Session) -> None:
+            if rows:
+                db.execute(insert(PositionRecord), [_row(p) for p in rows])
+            self._write_snapshots(db, snaps)
+
+        if rows or snaps:
+            self._storage(write, what)
+            self._saved(snaps)
 
     def tick(self) -> list[Message]:
         """Flush quiet devices' buffers and filters; evict idle devices (with a snapshot).
@@ -264,10 +300,9 @@ class Shard:
         idle = [d for d in self.devices.values() if not d.pending and now - d.last_seen >= evict_ms]
         if not quiet and not idle:
             return []
-        with session_scope(self.sessions) as db:
-            results = self._flush(db, quiet, now)
-            self._save_snapshots(db, quiet, force=False)
-            self._save_snapshots(db, idle, force=True)
+        results, rows = self._flush(quiet, now)
+        snaps = self._due_snapshots(quiet, force=False) + self._due_snapshots(idle, force=True)
+        self._store_flushed(rows, snaps, "storing flushed positions")
         for device in idle:
             self._evict(device)
             self.counters["evicted"] += 1
@@ -281,9 +316,8 @@ class Shard:
         """
         now = self.clock()
         devices = list(self.devices.values())
-        with session_scope(self.sessions) as db:
-            results = self._flush(db, [d for d in devices if d.pending], now)
-            self._save_snapshots(db, devices, force=True)
+        results, rows = self._flush([d for d in devices if d.pending], now)
+        self._store_flushed(rows, self._due_snapshots(devices, force=True), "draining")
         for device in devices:
             self._evict(device)
             self.counters["evicted"] += 1
@@ -294,15 +328,25 @@ class Shard:
         for device in list(self.devices.values()):
             self._evict(device)
 
-    def _save_snapshots(self, db: Session, devices: list[DeviceSession], *, force: bool) -> None:
-        """Store the snapshots of ``devices`` that are due (all of them with ``force``)."""
+    def _due_snapshots(self, devices: list[DeviceSession], *, force: bool) -> list[Snapshot]:
+        """Return the snapshots of ``devices`` that are due (all of them with ``force``)."""
+        snaps = []
         for device in devices:
             due = device.processed_t - device.snapshot_t >= self.settings.snapshot_every_ms
             if device.tracker is None or device.processed_t < 0 or not (force or due):
                 continue
-            self.store.save(db, device.key, device.processed_t, snapshots.encode(device.snapshot()))
-            device.snapshot_t = device.processed_t
-            self.counters["snapshots"] += 1
+            snaps.append((device, device.processed_t, snapshots.encode(device.snapshot())))
+        return snaps
+
+    def _write_snapshots(self, db: Session, snaps: list[Snapshot]) -> None:
+        for device, t, blob in snaps:
+            self.store.save(db, device.key, t, blob)
+
+    def _saved(self, snaps: list[Snapshot]) -> None:
+        """Note the snapshots as stored, once their transaction committed."""
+        for device, t, _ in snaps:
+            device.snapshot_t = t
+        self.counters["snapshots"] += len(snaps)
 
     def stats(self) -> Message:
         """Return counters for the API's metrics."""

@@ -70,6 +70,19 @@ class SiteEngines:
             pdr_params=pdr,
         )
 
+    def warm(self) -> SiteEngines:
+        """Build now the shared engine the site's new RSSI devices get; return self.
+
+        A worker warms a site when it loads or changes, so the first device
+        there does not wait for its rasters.
+        """
+        kind = radio_kind(self.site)
+        if kind == PF:
+            _ = self.pf
+        elif kind == HMM:
+            _ = self.hmm
+        return self
+
     @property
     def pf(self) -> PositioningEngine:
         """Return the site's particle-filter engine, built on first use.

@@ -18,29 +18,40 @@ from tests.conftest import ADMIN_KEY, LiveServer
 EXAMPLES_PER_OPERATION = 25
 
 
+def run_schemathesis(url: str, cwd: Path, *, examples: int, timeout_s: float) -> int:
+    """Fuzz the server at ``url`` from its OpenAPI document, every phase (the stateful one
+    follows the links Schemathesis infers); return the test cases generated, failing on any
+    server error or answer outside the schema."""
+    run = subprocess.run(
+        [
+            Path(sys.executable).parent / "schemathesis", "run",
+            f"{url}/openapi.json",
+            "--header", f"Authorization: Bearer {ADMIN_KEY}",
+            "--checks", "not_a_server_error,response_schema_conformance",
+            "--phases", "examples,coverage,fuzzing,stateful",
+            "--max-examples", str(examples),
+            "--seed", "1",
+            "--workers", "1",
+            "--request-timeout", "30",
+        ],
+        capture_output=True, text=True, timeout=timeout_s, cwd=cwd,
+    )  # fmt: skip
+    summary = run.stdout[-3000:]
+    assert run.returncode == 0, summary
+    generated = re.search(r"(\d+) generated", run.stdout)
+    assert generated is not None, summary
+    return int(generated.group(1))
+
+
 def test_no_server_errors_and_every_answer_matches_the_schema(
     new_database: Any, tmp_path: Path
 ) -> None:
     server = LiveServer(database_url=new_database(), home=tmp_path, workers=1)
     try:
-        run = subprocess.run(
-            [
-                Path(sys.executable).parent / "schemathesis", "run",
-                f"{server.url}/openapi.json",
-                "--header", f"Authorization: Bearer {ADMIN_KEY}",
-                "--checks", "not_a_server_error,response_schema_conformance",
-                "--phases", "examples,coverage,fuzzing",
-                "--max-examples", str(EXAMPLES_PER_OPERATION),
-                "--seed", "1",
-                "--workers", "1",
-                "--request-timeout", "30",
-            ],
-            capture_output=True, text=True, timeout=600, cwd=tmp_path,
-        )  # fmt: skip
+        generated = run_schemathesis(
+            server.url, tmp_path, examples=EXAMPLES_PER_OPERATION, timeout_s=600
+        )
     finally:
         server.stop()
-    summary = run.stdout[-3000:]
-    assert run.returncode == 0, summary
-    generated = re.search(r"(\d+) generated", run.stdout)
-    assert generated is not None and int(generated.group(1)) > 500, summary
-    print(f"schemathesis: {generated.group(0)} test cases, no failures")
+    assert generated > 500
+    print(f"schemathesis: {generated} test cases, no failures")

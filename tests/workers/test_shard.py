@@ -142,7 +142,7 @@ def test_silence_on_the_shard_clock_flushes_a_device_then_evicts_it(
     assert [p["t"] for p in handled] == [T0 + 1000 * k + 90 for k in range(5)]
     assert [p["t"] for p in flushed] == [T0 + 1000 * k + 90 for k in (5, 6, 7)]
 
-    pf = shard.engines[SITE_ID].pf
+    pf = shard.sites.engines[SITE_ID].pf
     assert phone in pf.devices
     clock.advance(60)  # silent for idle_evict_s
     assert shard.tick() == []
@@ -166,7 +166,7 @@ def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_g
 
     assert _positions(drained, tag) and _positions(drained, phone)
     assert shard.devices == {}
-    assert phone not in shard.engines[SITE_ID].pf.devices
+    assert phone not in shard.sites.engines[SITE_ID].pf.devices
     with session_scope(office_sessions) as db:
         for device_id, last in ((tag, ranges[-1]["t"]), (phone, scans[-1]["t"])):
             stored = DatabaseSnapshots().load(db, (SITE_ID, device_id))
