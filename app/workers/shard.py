@@ -24,7 +24,7 @@ from app.devices.service import touch_devices
 from app.engine.samples import Batch, Estimate
 from app.positions.models import PositionRecord
 from app.workers import snapshots
-from app.workers.device import DeviceSession
+from app.workers.device import DeviceSession, public
 from app.workers.sites import SiteCache
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
 from app.workers.trackers import BatchEngine, DeviceTracker, SiteEngines
@@ -177,7 +177,7 @@ class Shard:
             positions, events = self._emit(device, estimates, now)
             rows.extend(positions)
             result.update(
-                positions=positions,
+                positions=[public(p) for p in positions],
                 events=events,
                 processed_t=device.processed_t,
                 processed_wifi_t=device.processed_wifi_t,
@@ -263,7 +263,7 @@ class Shard:
                         "type": "emitted",
                         "site_id": device.site.site_id,
                         "device_id": device.device_id,
-                        "positions": positions,
+                        "positions": [public(p) for p in positions],
                         "events": events,
                     }
                 )

@@ -53,7 +53,9 @@ def _two_outlines() -> dict[str, Any]:
 
 
 CASES: dict[str, Case] = {
-    "ingest: body not JSON": Case("POST", "/v1/ingest", raw=b"{device_id: x", says="JSON"),
+    "ingest: body not JSON": Case(
+        "POST", "/v1/ingest", raw=b"{device_id: x", status=400, says="JSON"
+    ),
     "ingest: a JSON array": Case("POST", "/v1/ingest", raw=b"[1, 2]", says="object"),
     "ingest: no samples": Case(
         "POST", "/v1/ingest", {"device_id": "d", "site_id": SITE}, says="at least one sample"

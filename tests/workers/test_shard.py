@@ -14,7 +14,7 @@ from app.core.config import Settings
 from app.core.db import session_scope
 from app.sites.assembly import LoadedSite
 from app.workers import snapshots
-from app.workers.device import DeviceSession
+from app.workers.device import DeviceSession, public
 from app.workers.shard import Shard
 from app.workers.snapshot_store import DatabaseSnapshots
 from app.workers.trackers import PF, SiteEngines
@@ -76,7 +76,8 @@ def _alone(engines: SiteEngines, device_id: str, kind: str, uploads: list[list[S
         if batch is not None:
             assert session.tracker is not None
             out += session.emit(session.tracker.process(batch), now=T0)[0]
-    return [{k: v for k, v in p.items() if k != "computed_at"} for p in out]
+    # as a shard answers: without what only the history keeps
+    return [{k: v for k, v in public(p).items() if k != "computed_at"} for p in out]
 
 
 def test_interleaved_messages_reach_their_own_devices(

@@ -13,6 +13,7 @@ from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
 from app.demo import load_map
 from app.floors.service import put_floor
+from app.geometry.extent import ExtentLimits
 from app.sites.models import Site
 from app.sites.schemas import SiteUpsert
 from app.sites.service import delete_site, upsert_site
@@ -32,7 +33,13 @@ def _put_office(sessions: sessionmaker[Session], site_id: str) -> int:
     """Store (again) the office floor in the site; return the site's new map version."""
     with session_scope(sessions) as db:
         site, _ = upsert_site(db=db, site_id=site_id, body=SiteUpsert(name=site_id))
-        put_floor(db=db, site=site, floor_id="F1", doc=load_map(), raster_cell=0.5)
+        put_floor(
+            db=db,
+            site=site,
+            floor_id="F1",
+            doc=load_map(),
+            limits=ExtentLimits(max_extent_m=3000.0, max_raster_cells=16_000_000, cell=0.5),
+        )
         return site.map_version
 
 
