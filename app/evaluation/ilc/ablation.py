@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -62,11 +62,13 @@ STAGES = (
 
 @dataclass
 class StageScores:
-    """Every stage's walk scores, and the tracker's CPU time (s) and batch count."""
+    """Every stage's walk scores, the tracker's CPU time (s) and batch count, and the kept
+    walks' estimates by stage (floors numbered as the evaluation numbers them)."""
 
     scores: dict[str, list[WalkScore]]
     cpu_s: float
     updates: int
+    tracks: dict[str, dict[str, list[Estimate]]] = field(default_factory=dict)
 
     def rows(self) -> list[Row]:
         """Return one table row per stage; CPU per update on the tracking rows."""
@@ -146,12 +148,15 @@ def replay_stages(
     *,
     wifi_times: str,
     settings: Settings,
+    keep: Collection[str] = (),
 ) -> StageScores:
     """Replay ``walks`` through worker device sessions and score every stage; each batch is
-    screened as the ingest screens it (``settings``' limits)."""
+    screened as the ingest screens it (``settings``' limits); the estimates of the walks
+    named in ``keep`` are kept, by stage."""
     # the site numbers floors by its own order; scores use ``floors``'
     to_eval = np.array([floors.index(f) for f in engines.site.floor_ids], dtype=np.int64)
     scores: dict[str, list[WalkScore]] = {name: [] for name in STAGES}
+    tracks: dict[str, dict[str, list[Estimate]]] = {}
     cpu = 0.0
     updates = 0
     for walk in walks:
@@ -185,15 +190,14 @@ def replay_stages(
         emitted = estimates_from_positions(messages, floors)
         served = served_track(emitted)
         floor = floors.index(walk.floor)
-        for name, stage in zip(
-            STAGES,
-            (
-                _renumbered(knn, to_eval),
-                [e for e in emitted if not e.smoothed],
-                served,
-                _renumbered(smoothed, to_eval),
-            ),
-            strict=True,
-        ):
+        stages = (
+            _renumbered(knn, to_eval),
+            [e for e in emitted if not e.smoothed],
+            served,
+            _renumbered(smoothed, to_eval),
+        )
+        for name, stage in zip(STAGES, stages, strict=True):
             scores[name].append(score_walk(walk.waypoints, floor, stage))
-    return StageScores(scores, cpu, updates)
+        if walk.walk_id in keep:
+            tracks[walk.walk_id] = dict(zip(STAGES, stages, strict=True))
+    return StageScores(scores, cpu, updates, tracks)

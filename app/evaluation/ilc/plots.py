@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from app.datasets.ilc import Walk
+from app.engine.plan import FloorPlan
 from app.engine.samples import Estimate
 from app.evaluation.ilc.recordings import SiteRecordings
 from app.evaluation.plots import plan_figure
@@ -18,6 +19,9 @@ METHOD_COLOURS = {
     "pf-radiomap": "tab:red",
     "hmm + fixed-lag": "tab:purple",
     "hmm + full smoothing": "tab:cyan",
+    "+ HMM tracking (live)": "tab:green",
+    "+ fixed-lag smoothing": "tab:purple",
+    "+ full smoothing": "tab:orange",
 }
 """Line colour of each method in the walk plots."""
 
@@ -33,9 +37,16 @@ def plot_walk(
     Estimates on a wrong floor are left out and counted in the legend.
     """
     f = site.floor_index(walk)
+    plot_on_plan(path, site.plans[f], f, walk, results)
+
+
+def plot_on_plan(
+    path: Path, plan: FloorPlan, f: int, walk: Walk, results: dict[str, list[Estimate]]
+) -> None:
+    """Save estimate vs truth over ``plan`` (floor index ``f`` of the estimates) as a PNG."""
     wp = walk.waypoints
     title = f"site1 {walk.floor} walk {walk.walk_id}"
-    with plan_figure(path, site.plans[f], title, width_in=10.0) as ax:
+    with plan_figure(path, plan, title, width_in=10.0) as ax:
         ax.plot(wp[:, 1], wp[:, 2], "k.-", lw=2, ms=6, label="waypoints (truth)")
         for name, estimates in results.items():
             on = [e for e in estimates if e.floor == f]

@@ -38,13 +38,16 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 
 from app.core.config import Settings
 from app.datasets import data_dir
 from app.datasets.ilc import Walk, read_floor, read_walk, site_walks
-from app.evaluation.ilc.ablation import StageScores, load_engines, replay_stages
+from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.experiment import add_split_arguments
 from app.evaluation.ilc.knn_baseline import scan_knn_scores
+from app.evaluation.ilc.plots import plot_on_plan
+from app.evaluation.ilc.recordings import PLAN_CELL_M
 from app.evaluation.ilc.score import (
     WalkScore,
     estimates_from_positions,
@@ -53,6 +56,8 @@ from app.evaluation.ilc.score import (
 )
 from app.evaluation.ilc.table import COLUMNS, table_cells
 from app.evaluation.split import split_ids, walk_unit
+from app.geometry.floormap import parse_floor_map
+from app.geometry.raster import floor_plan
 from app.importers.ilc import WIFI_TIMES, survey_body, walk_samples
 from app.replay import replay_samples
 
@@ -140,11 +145,13 @@ def evaluate_through_server(
     wifi_times: str = "scan",
     tuning: bool = True,
     with_stages: bool = True,
+    keep: Sequence[str] = (),
     status: Callable[[str], None] = lambda _: None,
     progress: Callable[[int], None] = lambda _: None,
 ) -> ServerRun:
     """Start a server, survey and build it from ``train``, replay ``test`` and score it;
-    ``with_stages``, also score each stage of the phone engine in process on its build."""
+    ``with_stages``, also score each stage of the phone engine in process on its build,
+    keeping the stages' estimates of the walks named in ``keep``."""
     if wifi_times not in WIFI_TIMES:
         raise ValueError(f"wifi_times must be one of {WIFI_TIMES}")
     with (
@@ -181,9 +188,31 @@ def evaluate_through_server(
             settings = Settings()
             engines = load_engines(srv.database_url, SITE_ID, settings)
             stages = replay_stages(
-                engines, SITE_ID, test, floors, wifi_times=wifi_times, settings=settings
+                engines,
+                SITE_ID,
+                test,
+                floors,
+                wifi_times=wifi_times,
+                settings=settings,
+                keep=keep,
             )
     return ServerRun(build, scores, wall_s, positions, stages)
+
+
+def _plot_stages(
+    folder: Path, site_dir: Path, floors: Sequence[str], walks: Sequence[Walk], stages: StageScores
+) -> None:
+    """Draw the kept walks' tracking stages against their truth, one PNG a walk."""
+    folder.mkdir(parents=True, exist_ok=True)
+    by_id = {w.walk_id: w for w in walks}
+    for walk_id, tracks in stages.tracks.items():
+        walk = by_id[walk_id]
+        f = floors.index(walk.floor)
+        plan = floor_plan(
+            parse_floor_map(read_floor(site_dir / walk.floor).geojson), cell=PLAN_CELL_M
+        )
+        shown = {name: tracks[name] for name in STAGES[1:]}
+        plot_on_plan(folder / f"{walk.floor}_{walk_id}.png", plan, f, walk, shown)
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -207,6 +236,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="the build keeps the engines' hand-set defaults instead of choosing constants",
     )
     parser.add_argument("--save", type=Path, help="write the positions and summary as JSON")
+    parser.add_argument("--plots", type=Path, help="folder for PNGs of a few walks' stages")
+    parser.add_argument("--n-plots", type=int, default=4, help="walks plotted (evenly spread)")
     return parser.parse_args(argv)
 
 
@@ -237,6 +268,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"{len(floors)} floors, {len(train_walks)} survey walks, {len(held)} held-out walks; "
         f"WiFi timed by {args.wifi_times}"
     )
+    plotted = (
+        [held[i].walk_id for i in np.linspace(0, len(held) - 1, args.n_plots).astype(int)]
+        if args.plots and held
+        else []
+    )
     with console.status("starting a server") as status, Progress(console=console) as bar:
         task = bar.add_task("replay", total=len(held))
         run = evaluate_through_server(
@@ -246,6 +282,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             held,
             wifi_times=args.wifi_times,
             tuning=not args.no_tuning,
+            keep=plotted,
             status=lambda s: status.update(s),
             progress=lambda i: bar.update(task, completed=i),
         )
@@ -266,6 +303,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     table.add_row(*table_cells(summarise("per-scan k-NN (same surveys)", baseline, 0.0, 0)))
     console.print(table)
     console.print(f"replay wall time {run.wall_s:.0f} s")
+    if args.plots and run.stages is not None:
+        _plot_stages(args.plots, site_dir, floors, held, run.stages)
     if args.save:
         args.save.write_text(json.dumps({"build": run.build, "positions": run.positions}))
 
