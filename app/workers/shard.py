@@ -194,6 +194,12 @@ class Shard:
 
         self._storage(write, "storing positions")
         self._saved(snaps)
+        # a device is not silent while its batch is being positioned and stored: a slow
+        # round (a site's first use, a storage outage) must not flush what the next batch
+        # would have placed
+        done_at = self.clock()
+        for device in touched:
+            device.last_seen = max(device.last_seen, done_at)
         self.update_seconds += time.perf_counter() - started
         self.counters["positions"] += len(rows)
         return results

@@ -18,9 +18,9 @@ depends_on: str | Sequence[str] | None = None
 
 def upgrade() -> None:
     """Apply this revision."""
-    with op.batch_alter_table("positions", schema=None) as batch_op:
-        batch_op.add_column(sa.Column("odometry_x", sa.Float(), nullable=True))
-        batch_op.add_column(sa.Column("odometry_y", sa.Float(), nullable=True))
+    # nullable columns are added in place, on SQLite too: no copy of the history
+    op.add_column("positions", sa.Column("odometry_x", sa.Float(), nullable=True))
+    op.add_column("positions", sa.Column("odometry_y", sa.Float(), nullable=True))
 
 
 def downgrade() -> None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from app.core.db import make_engine, make_sessionmaker, session_scope
 from app.floors.service import put_floor
+from app.geometry.extent import ExtentLimits
 from app.sites.schemas import SiteUpsert
 from app.sites.service import upsert_site
 from bench.site1 import floor_maps, scan, walkable_point
@@ -43,7 +44,13 @@ def test_first_position_on_a_loaded_mall_within_a_second(new_database: Any, tmp_
     with session_scope(make_sessionmaker(engine)) as db:
         site, _ = upsert_site(db=db, site_id=SITE, body=SiteUpsert(name="ILC site1"))
         for floor_id, doc in maps.items():
-            put_floor(db=db, site=site, floor_id=floor_id, doc=doc, raster_cell=0.25)
+            put_floor(
+                db=db,
+                site=site,
+                floor_id=floor_id,
+                doc=doc,
+                limits=ExtentLimits(max_extent_m=3000.0, max_raster_cells=16_000_000, cell=0.25),
+            )
     engine.dispose()
     server = LiveServer(
         database_url=url, home=tmp_path, workers=2, env={"LOCUS_SITE_POLL_S": "0.5"}
