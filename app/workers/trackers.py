@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from app.engine.centroid import CentroidParams, WeightedCentroid
 from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.params import HmmParams
@@ -23,7 +25,7 @@ from app.engine.locator_tracker import LocatorTracker, LocatorTrackerParams
 from app.engine.particle.floor_model import build_floor_models
 from app.engine.pdr import PdrParams
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
-from app.engine.samples import Batch, Estimate
+from app.engine.samples import Batch, Estimate, RssiReadings
 from app.engine.smoothing import FixedLagSmoother, SmootherParams
 from app.engine.tracker import Tracker
 from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
@@ -78,9 +80,9 @@ class SiteEngines:
         """
         kind = radio_kind(self.site)
         if kind == PF:
-            _ = self.pf
+            _warm_particle_filter(self.pf, self.site)
         elif kind == HMM:
-            _ = self.hmm
+            _warm_hmm(self.hmm)
         return self
 
     @property
@@ -104,6 +106,36 @@ class SiteEngines:
         if self._hmm is None:
             self._hmm = EmissionModel(self.site.radio_maps, self.hmm_params)
         return self._hmm
+
+
+WARM_UP_DEVICE = "\x00warm-up"
+"""A device id no client can send (ids are validated): the throwaway device of a warm-up."""
+
+
+def _warm_particle_filter(engine: PositioningEngine, site: LoadedSite) -> None:
+    """Run a throwaway device through the engine, so its compiled loops are compiled (or
+    loaded from their disk cache) now rather than on a real device's first batch."""
+    tx = site.model.transmitters
+    usable = np.flatnonzero(np.isfinite(tx.A + tx.B + tx.sigma))[:4]
+    if usable.size == 0:
+        return
+    engine.add(WARM_UP_DEVICE)
+    try:
+        for k in range(3):
+            t = np.full(usable.size, 1000 * k, dtype=np.int64)
+            rssi = np.full(usable.size, -60.0)
+            batch = Batch(rssi=RssiReadings(t=t, tx=usable.astype(np.int32), rssi=rssi))
+            engine.process({WARM_UP_DEVICE: batch})
+        engine.flush([WARM_UP_DEVICE])
+    finally:
+        engine.remove(WARM_UP_DEVICE)
+
+
+def _warm_hmm(model: EmissionModel) -> None:
+    """Compare one reading with the survey scans, so the compiled distance is ready."""
+    refs = model.references
+    if refs is not None and refs.usable.any():
+        refs.distances(np.flatnonzero(refs.usable)[:1], np.array([-60.0]))
 
 
 class BatchEngine(Protocol):
