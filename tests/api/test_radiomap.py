@@ -19,8 +19,9 @@ from app.datasets import data_dir
 from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_walk, site_walks
 from app.engine.hmm.params import HmmParams
 from app.engine.pdr import detect_steps
-from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages, served_track
-from app.evaluation.ilc.score import estimates_from_positions, score_walk
+from app.engine.samples import Estimate
+from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages
+from app.evaluation.ilc.score import estimates_from_positions
 from app.evaluation.metrics import truth_at
 from app.evaluation.trackfit_eval import as_links, raw_track, simplify
 from app.importers.ilc import survey_body, walk_samples
@@ -255,6 +256,16 @@ def _replay_walk(
     return out
 
 
+def _by_t(estimates: list[Estimate]) -> dict[int, tuple[float, float]]:
+    return {e.t: (e.x, e.y) for e in estimates}
+
+
+def _same_where_both(a: dict[int, tuple[float, float]], b: dict[int, tuple[float, float]]) -> float:
+    """Return the share of ``a``'s times that ``b`` has at the same place (within 2 mm)."""
+    same = [t for t in a if t in b and np.allclose(a[t], b[t], atol=2e-3)]
+    return len(same) / max(len(a), 1)
+
+
 @needs_site1
 def test_the_in_process_stages_are_the_server_on_its_own_build(
     client: TestClient, settings: Settings, built_site: dict[str, Any], walks: list[Path]
@@ -268,16 +279,22 @@ def test_the_in_process_stages_are_the_server_on_its_own_build(
     )
     # the evaluation's stages assemble the stored site as a worker does
     engines = load_engines(settings.resolved_database_url, sid, settings)
-    stages = replay_stages(engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings)
+    stages = replay_stages(
+        engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings, keep=[walk.walk_id]
+    )
     assert all(len(stages.scores[name]) == 1 for name in STAGES)
     assert stages.updates > 0 and stages.cpu_s > 0.0
-    # the live track and the refined one as served are the server's, position for position
-    for stage, smoothed in ((STAGES[1], False), (STAGES[2], None)):
-        mine = [e for e in positions if smoothed is None or e.smoothed == smoothed]
-        server = score_walk(walk.waypoints, 0, served_track(mine) if smoothed is None else mine)
-        (in_process,) = stages.scores[stage]
-        assert server.error.size > 20
-        assert np.allclose(in_process.error, server.error, atol=2e-3)
+    tracks = stages.tracks[walk.walk_id]
+    # the live track is the server's, position for position (a position the server
+    # flushed between two batches on a busy machine is in no answer: at most a few)
+    live = _by_t([e for e in positions if not e.smoothed])
+    mine = _by_t(tracks[STAGES[1]])
+    assert len(mine) > 20 and _same_where_both(live, mine) == 1.0
+    assert len(live) >= 0.9 * len(mine)
+    # so are the refined positions, wherever both refined the same live one
+    refined = _by_t([e for e in positions if e.smoothed])
+    mine_refined = _by_t([e for e in tracks[STAGES[2]] if e.smoothed])
+    assert len(refined) > 20 and _same_where_both(refined, mine_refined) >= 0.9
 
 
 @needs_site1
@@ -293,17 +310,20 @@ def test_the_history_refines_a_stored_track_by_the_full_backward_pass(
     url = f"/v1/sites/{sid}/devices/full-pass/positions"
     r = client.get(url, params={"smoothed": "true", "limit": 10_000}, headers=make_admin())
     assert r.status_code == 200, r.text
-    refined = r.json()["items"]
-    live = [p for p in answered if not p["smoothed"]]
-    assert [p["t"] for p in refined] == [p["t"] for p in live]
-    assert all(p["smoothed"] for p in refined)
-    assert any(abs(a["x"] - b["x"]) > 0.01 for a, b in zip(refined, live, strict=True))
-    # it is the engine's full pass over the live track, from the odometry stored with it
+    refined = estimates_from_positions(r.json()["items"], [FLOOR])
+    assert all(e.smoothed for e in refined)
+    # it is the engine's full pass over the whole live track, from the odometry stored with it
     engines = load_engines(settings.resolved_database_url, sid, settings)
-    stages = replay_stages(engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings)
-    (in_process,) = stages.scores[STAGES[3]]
-    served = score_walk(walk.waypoints, 0, estimates_from_positions(refined, [FLOOR]))
-    assert np.allclose(in_process.error, served.error, atol=0.02)
+    stages = replay_stages(
+        engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings, keep=[walk.walk_id]
+    )
+    tracks = stages.tracks[walk.walk_id]
+    assert [e.t for e in refined] == [e.t for e in tracks[STAGES[1]]]
+    full = {e.t: (e.x, e.y) for e in tracks[STAGES[3]]}
+    assert all(np.allclose((e.x, e.y), full[e.t], atol=0.02) for e in refined)
+    # and it moved them
+    live = _by_t(tracks[STAGES[1]])
+    assert any(not np.allclose((e.x, e.y), live[e.t], atol=0.01) for e in refined)
     bad = client.get(url, params={"smoothed": "maybe"}, headers=make_admin())
     assert bad.status_code == 422 and "smoothed" in bad.text
 
