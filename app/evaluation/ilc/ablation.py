@@ -33,9 +33,9 @@ from sqlalchemy.orm import Session
 
 from app.core.config import Settings
 from app.datasets.ilc import Walk
-from app.engine.samples import Batch, Estimate
-from app.engine.scans import ScanParams, scan_ids
+from app.engine.samples import Estimate
 from app.engine.smoothing import smooth_track
+from app.evaluation.ilc.knn_baseline import scan_estimates
 from app.evaluation.ilc.score import (
     Row,
     WalkScore,
@@ -97,35 +97,6 @@ def load_engines(database_url: str, site_id: str, settings: Settings) -> SiteEng
     return SiteEngines.for_site(loaded)
 
 
-def _knn(engines: SiteEngines, batch: Batch) -> list[Estimate]:
-    """Locate every scan of a batch on its own against the build's survey scans."""
-    refs = engines.hmm.references
-    r = batch.rssi
-    if refs is None or not r.t.size:
-        return []
-    out = []
-    scan = scan_ids(r.t, r.tx, ScanParams())
-    for s in np.unique(scan):
-        on = scan == s
-        tx, first = np.unique(r.tx[on], return_index=True)
-        fix = refs.locate(tx, r.rssi[on][first])
-        if fix is not None:
-            out.append(
-                Estimate(
-                    t=int(r.t[on].max()),
-                    x=float(fix.xy[0]),
-                    y=float(fix.xy[1]),
-                    z=0.0,
-                    floor=fix.floor,
-                    heading=float("nan"),
-                    accuracy=float("nan"),
-                    speed=float("nan"),
-                    method="knn",
-                )
-            )
-    return out
-
-
 def _renumbered(estimates: Sequence[Estimate], floors: np.ndarray) -> list[Estimate]:
     """Return the estimates with their floor index mapped through ``floors``."""
     return [replace(e, floor=int(floors[e.floor])) for e in estimates]
@@ -177,7 +148,8 @@ def replay_stages(
             batch, _ = session.take(reorder_ms=0, flush=True)
             if batch is None or session.tracker is None:
                 continue
-            knn += _knn(engines, batch)
+            if engines.hmm.references is not None:
+                knn += scan_estimates(engines.hmm.references, batch.rssi)
             t0 = time.process_time()
             estimates = session.tracker.process(batch)
             cpu += time.process_time() - t0

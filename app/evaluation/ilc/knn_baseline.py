@@ -18,6 +18,7 @@ from app.engine.radiomap import Survey, locate_scans
 from app.engine.samples import Estimate, RssiReadings
 from app.engine.scan_knn import ReferenceScans, ScanKnnParams
 from app.engine.scans import ScanParams, scan_ids
+from app.engine.wknn import unique_readings
 from app.evaluation.ilc.score import WalkScore, score_walk
 
 MAX_AGE_MS = 2000
@@ -34,13 +35,14 @@ def _readings(walk: Walk, index: dict[str, int]) -> RssiReadings:
     )
 
 
-def _walk_estimates(refs: ReferenceScans, readings: RssiReadings) -> list[Estimate]:
-    """Locate every scan of one walk on its own."""
+def scan_estimates(refs: ReferenceScans, readings: RssiReadings) -> list[Estimate]:
+    """Locate every scan of ``readings`` on its own (no motion model, no memory)."""
     scan = scan_ids(readings.t, readings.tx, ScanParams())
     out = []
     for s in np.unique(scan):
         on = scan == s
-        fix = refs.locate(readings.tx[on], readings.rssi[on])
+        tx, rssi = unique_readings(readings.tx[on], readings.rssi[on])
+        fix = refs.locate(tx, rssi)
         if fix is None:
             continue
         out.append(
@@ -75,6 +77,6 @@ def scan_knn_scores(
     ]
     refs = ReferenceScans(Survey.concat(parts), len(ids), params)
     return [
-        score_walk(w.waypoints, floors.index(w.floor), _walk_estimates(refs, _readings(w, index)))
+        score_walk(w.waypoints, floors.index(w.floor), scan_estimates(refs, _readings(w, index)))
         for w in test
     ]
