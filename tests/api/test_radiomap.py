@@ -20,7 +20,7 @@ from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_wal
 from app.engine.hmm.params import HmmParams
 from app.engine.pdr import detect_steps
 from app.engine.samples import Estimate
-from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages
+from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.score import estimates_from_positions
 from app.evaluation.metrics import truth_at
 from app.evaluation.trackfit_eval import as_links, raw_track, simplify
@@ -256,6 +256,14 @@ def _replay_walk(
     return out
 
 
+def _stages(settings: Settings, site_id: str, walk: Walk) -> StageScores:
+    """Replay ``walk`` stage by stage on the site as a worker assembles it from storage."""
+    engines = load_engines(settings.resolved_database_url, site_id, settings)
+    return replay_stages(
+        engines, site_id, [walk], [FLOOR], wifi_times="scan", settings=settings, keep=[walk.walk_id]
+    )
+
+
 def _by_t(estimates: list[Estimate]) -> dict[int, tuple[float, float]]:
     return {e.t: (e.x, e.y) for e in estimates}
 
@@ -278,10 +286,7 @@ def test_the_in_process_stages_are_the_server_on_its_own_build(
         _replay_walk(client, sid, "through-http", walks[N_SURVEYS], "scan"), [FLOOR]
     )
     # the evaluation's stages assemble the stored site as a worker does
-    engines = load_engines(settings.resolved_database_url, sid, settings)
-    stages = replay_stages(
-        engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings, keep=[walk.walk_id]
-    )
+    stages = _stages(settings, sid, walk)
     assert all(len(stages.scores[name]) == 1 for name in STAGES)
     assert stages.updates > 0 and stages.cpu_s > 0.0
     tracks = stages.tracks[walk.walk_id]
@@ -313,10 +318,7 @@ def test_the_history_refines_a_stored_track_by_the_full_backward_pass(
     refined = estimates_from_positions(r.json()["items"], [FLOOR])
     assert all(e.smoothed for e in refined)
     # it is the engine's full pass over the whole live track, from the odometry stored with it
-    engines = load_engines(settings.resolved_database_url, sid, settings)
-    stages = replay_stages(
-        engines, sid, [walk], [FLOOR], wifi_times="scan", settings=settings, keep=[walk.walk_id]
-    )
+    stages = _stages(settings, sid, walk)
     tracks = stages.tracks[walk.walk_id]
     assert [e.t for e in refined] == [e.t for e in tracks[STAGES[1]]]
     full = {e.t: (e.x, e.y) for e in tracks[STAGES[3]]}
