@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from sqlalchemy import func, or_, select
+from sqlalchemy import Select, func, or_, select
 from sqlalchemy.orm import Session
 
 from app.engine.samples import Estimate
@@ -70,6 +70,17 @@ def history(
             PositionRecord.t > refined_until,
         ),
     )
+    return _page(db, query, t_from, t_to, limit)
+
+
+def _page(
+    db: Session,
+    query: Select[PositionRecord],
+    t_from: int | None,
+    t_to: int | None,
+    limit: int,
+) -> list[PositionRecord]:
+    """Return up to ``limit`` rows of ``query`` with ``t_from <= t <= t_to``, ascending t."""
     if t_from is not None:
         query = query.where(PositionRecord.t >= t_from)
     if t_to is not None:
@@ -86,11 +97,7 @@ def live_history(
         PositionRecord.device_id == device_id,
         PositionRecord.smoothed.is_(False),
     )
-    if t_from is not None:
-        query = query.where(PositionRecord.t >= t_from)
-    if t_to is not None:
-        query = query.where(PositionRecord.t <= t_to)
-    return list(db.scalars(query.order_by(PositionRecord.t, PositionRecord.id).limit(limit)))
+    return _page(db, query, t_from, t_to, limit)
 
 
 def full_pass(
