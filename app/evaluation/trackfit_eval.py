@@ -12,9 +12,9 @@ merged into straight links between turns (Ramer–Douglas–Peucker).
 
 Four settings: the first heading withheld (the paper's case) or given, and
 WiFi anchors or none. Anchors are one of the walk's own scans every
-``--scan-every`` seconds, attached to the link end nearest in time, scored
-against radio maps built from the TRAINING walks only (split by walk, never by
-sample).
+``--scan-every`` seconds, each ending a link of its own at the step nearest
+in time (a device ends a segment where it scans), scored against radio maps
+built from the TRAINING walks only (split by walk, never by sample).
 
 Positions are compared with the surveyed waypoints at the waypoints' times
 (the first waypoint, the given start, excluded). A fitted link is a scaled
@@ -39,6 +39,7 @@ from app.datasets.ilc import Walk, imu_samples, read_floor, site_walks
 from app.engine.pdr import detect_steps
 from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap, RadioMapParams
+from app.engine.scan_knn import ReferenceScans
 from app.engine.scans import ScanParams, group_scans
 from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
 from app.engine.trackfit.search import TrackSearchParams, search_track
@@ -228,29 +229,51 @@ def simulated_track(waypoints: np.ndarray, errors: SimulatedErrors, seed: int) -
     return RawTrack(t=t.astype(np.int64), xy=xy)
 
 
+@dataclass(frozen=True)
+class TimedScan:
+    """One of the walk's WiFi scans kept as an anchor: the raw step it ends at, its readings."""
+
+    step: int
+    tx: np.ndarray
+    rssi: np.ndarray
+
+
 def anchor_scans(
-    site: SiteRecordings, walk: Walk, vertex_t: np.ndarray, every_s: float
-) -> list[WifiScan]:
-    """Return one of the walk's scans every ``every_s``, each at the link end nearest in time.
+    site: SiteRecordings, walk: Walk, step_t: np.ndarray, every_s: float
+) -> list[TimedScan]:
+    """Return one of the walk's scans every ``every_s``, each at the raw step nearest in time.
 
     The k-th anchor is the first scan completed at least k·every_s after the
-    start (scans before the last link end only).
+    start (scans before the last step only). A device ends a segment where it
+    takes a scan, so each anchor observes a link end of its own.
     """
     readings = site.readings(walk)
     scans = group_scans(readings.t, readings.tx, ScanParams())
-    out: list[WifiScan] = []
-    target = vertex_t[0] + every_s * 1000.0
+    out: list[TimedScan] = []
+    target = step_t[0] + every_s * 1000.0
     for idx in scans:
         t_scan = float(readings.t[idx].max())
-        if t_scan > vertex_t[-1]:
+        if t_scan > step_t[-1]:
             break
         if t_scan < target:
             continue
-        point = int(np.argmin(np.abs(vertex_t - t_scan)))
-        if point > 0:
-            out.append(WifiScan(point, readings.tx[idx], readings.rssi[idx]))
+        step = int(np.argmin(np.abs(step_t - t_scan)))
+        if step > 0:
+            out.append(TimedScan(step, readings.tx[idx], readings.rssi[idx]))
         target += every_s * 1000.0
     return out
+
+
+def track_vertices(raw: RawTrack, links: str, scans: list[TimedScan]) -> np.ndarray:
+    """Return the raw steps that end links: every step, or the merged track's corners, plus
+    the step of every anchor scan (the device ends a segment where it scans)."""
+    corners = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
+    return np.union1d(corners, [s.step for s in scans]).astype(np.int64)
+
+
+def link_scans(scans: list[TimedScan], vertex: np.ndarray) -> list[WifiScan]:
+    """Return the anchor scans on the link ends: point k is ``vertex[k]``."""
+    return [WifiScan(int(np.searchsorted(vertex, s.step)), s.tx, s.rssi) for s in scans]
 
 
 @dataclass(frozen=True)
@@ -285,7 +308,7 @@ def evaluate_walk(
     walk: Walk,
     plan: FloorPlan,
     raw: RawTrack,
-    links: str,
+    vertex: np.ndarray,
     anchors: AnchorCosts | None,
     params: TrackSearchParams,
 ) -> list[FitResult]:
@@ -294,7 +317,6 @@ def evaluate_walk(
     t_eval = wp[1:, 0]
     truth, _ = truth_at(wp, t_eval)
     raw_err = np.linalg.norm(position_at(raw.t, raw.xy, t_eval) - truth, axis=1)
-    vertex = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
     lengths, turns, direction = as_links(raw.xy[vertex])
     times = raw.t[vertex] / 1000.0
     out = []
@@ -412,6 +434,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--anchor-weight", type=float, default=TrackSearchParams().fit.anchor_weight
     )
+    parser.add_argument("--anchor-sigma", type=float, default=TrackSearchParams().fit.anchor_sigma)
     parser.add_argument("--anchor-cap", type=float, default=TrackSearchParams().fit.anchor_cap)
     parser.add_argument("--quiet", action="store_true", help="no per-walk lines")
     args = parser.parse_args(argv)
@@ -421,6 +444,7 @@ def main(argv: list[str] | None = None) -> None:
         base.fit,
         time_limit_s=args.time_limit,
         anchor_weight=args.anchor_weight,
+        anchor_sigma=args.anchor_sigma,
         anchor_cap=args.anchor_cap,
     )
     params = search_params(
@@ -439,6 +463,7 @@ def main(argv: list[str] | None = None) -> None:
     site = read_site_recordings(args.site, train_ids=train)
     maps: tuple[RadioMap, ...] = radio_maps(site, survey_of(site, train), RadioMapParams())
     plans: dict[str, FloorPlan] = {}
+    refs: dict[int, ReferenceScans] = {}
     walks = sorted(
         (w for w in site.walks if w.walk_id in held and w.waypoints.shape[0] >= 2),
         key=lambda w: w.walk_id,
@@ -469,12 +494,19 @@ def main(argv: list[str] | None = None) -> None:
             raw = raw_track(wp[[0, -1], 0], steps.t, steps.length, steps.heading, wp[0, 1:])
         if len(raw.xy) < 3:
             continue
-        vertex = (
-            np.arange(len(raw.xy)) if args.links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
+        scans = anchor_scans(site, walk, raw.t.astype(float), args.scan_every)
+        vertex = track_vertices(raw, args.links, scans)
+        floor = site.floor_index(walk)
+        if floor not in refs:
+            refs[floor] = ReferenceScans.from_maps((maps[floor],), len(site.tx_ids))
+        anchors = (
+            wifi_anchor_costs(
+                maps[floor], refs[floor], link_scans(scans, vertex), params.fit.anchor_sigma
+            )
+            if scans
+            else None
         )
-        scans = anchor_scans(site, walk, raw.t[vertex].astype(float), args.scan_every)
-        anchors = wifi_anchor_costs(maps[site.floor_index(walk)], scans) if scans else None
-        found = evaluate_walk(walk, plan, raw, args.links, anchors, params)
+        found = evaluate_walk(walk, plan, raw, vertex, anchors, params)
         results += found
         if not args.quiet:
             print(

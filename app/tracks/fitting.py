@@ -13,6 +13,7 @@ import numpy as np
 
 from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap
+from app.engine.scan_knn import ReferenceScans
 from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
 from app.engine.trackfit.search import Candidate, TrackSearchParams, search_track
 from app.geometry.floormap import parse_floor_map
@@ -28,33 +29,38 @@ def _plan(site_id: str, floor_id: str, version: int, doc_json: str, cell: float)
 @lru_cache(maxsize=8)
 def _radio_map(
     site_id: str, floor_id: str, version: int, data: bytes, transmitters: tuple[str, ...]
-) -> tuple[RadioMap, dict[str, int]]:
-    """Decode a stored map with its columns numbered 0… and the id → column lookup."""
-    m = decode_map(data)
-    return replace(m, tx=np.arange(len(transmitters), dtype=np.int32)), {
-        tx: i for i, tx in enumerate(transmitters)
-    }
+) -> tuple[RadioMap, ReferenceScans | None, dict[str, int]]:
+    """Decode a stored map with its columns numbered 0…, its survey scans prepared for
+    k-NN (None when the map keeps none) and the id → column lookup."""
+    m = replace(decode_map(data), tx=np.arange(len(transmitters), dtype=np.int32))
+    refs = None if m.references is None else ReferenceScans.from_maps((m,), len(transmitters))
+    return m, refs, {tx: i for i, tx in enumerate(transmitters)}
 
 
-def _anchors(job: dict[str, Any], segments: list[dict[str, Any]]) -> AnchorCosts | None:
-    """Return the cost rasters of the segments' scans on the floor's radio map, if both exist."""
+def _anchors(
+    job: dict[str, Any], segments: list[dict[str, Any]], sigma: float
+) -> AnchorCosts | None:
+    """Return the cost rasters of the segments' scans on the floor's survey scans, if the
+    floor has a radio map that keeps them."""
     stored = job.get("radiomap")
     if not stored:
         return None
-    radio_map, column = _radio_map(
+    radio_map, refs, column = _radio_map(
         job["site_id"],
         job["floor_id"],
         job["version"],
         stored["data"],
         tuple(stored["transmitters"]),
     )
+    if refs is None:
+        return None
     scans = []
     for i, segment in enumerate(segments, start=1):
         known = [r for r in segment.get("wifi") or () if r["id"] in column]
         if known:
             tx = np.array([column[r["id"]] for r in known], dtype=np.int64)
             scans.append(WifiScan(i, tx, np.array([r["rssi"] for r in known], dtype=float)))
-    return wifi_anchor_costs(radio_map, scans) if scans else None
+    return wifi_anchor_costs(radio_map, refs, scans, sigma) if scans else None
 
 
 def _heading_deg(direction: float) -> float:
@@ -99,7 +105,7 @@ def run_fit(job: dict[str, Any]) -> dict[str, Any]:
         )
         heading = request.get("heading")
         times = np.array([request["t0"], *(s["t"] for s in segments)], dtype=float)
-        anchors = _anchors(job, segments)
+        anchors = _anchors(job, segments, params.fit.anchor_sigma)
         found = search_track(
             plan,
             np.array([request["start"]["x"], request["start"]["y"]]),

@@ -2,7 +2,7 @@
 
 References: an office plan in the paper's spirit (a corridor with rooms on
 both sides, doors into them) and a walk through it whose dead reckoning is
-perturbed by known errors; a radio map whose likelihoods are worked by hand.
+perturbed by known errors; three survey scans whose anchor costs are worked by hand.
 """
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from app.engine.plan import FloorPlan, burn_segments
-from app.engine.radiomap import RadioMap
-from app.engine.trackfit.anchors import WifiScan, wifi_anchor_costs
+from app.engine.radiomap import MapReferences, RadioMap
+from app.engine.scan_knn import ReferenceScans, ScanKnnParams
+from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
 from app.engine.trackfit.fit import TrackFitParams, fit_track, fit_tracks
 from app.engine.trackfit.search import (
     TrackSearchParams,
@@ -166,35 +167,61 @@ def test_a_straight_walk_in_an_open_hall_is_ambiguous_with_the_heading_unknown()
     assert not known.ambiguous
 
 
+SURVEYED = np.array([[-40.0, -44.0], [-42.0, -42.0], [-44.0, -40.0]])
+"""RSSI (dBm) of two transmitters in three survey scans at x = 0.5, 1.5, 2.5 (y = 0.5): the
+first fades eastwards, the second westwards."""
+
+
 def radio_map() -> RadioMap:
-    """Two transmitters over a 3 × 1 strip of 1 m cells, the first fading eastwards, the
-    second westwards (differences small enough to stay above the per-reading floor)."""
-    mean = np.array([[-40.0, -44.0], [-42.0, -42.0], [-44.0, -40.0]], dtype=np.float32)
+    """A 6 × 1 strip of 1 m cells whose map keeps the three survey scans of ``SURVEYED``."""
+    n = SURVEYED.shape[0]
     return RadioMap(
         floor=0,
         cell=1.0,
         origin=np.zeros(2),
-        shape=(1, 4),
+        shape=(1, 6),
         ij=np.array([[0, 0], [0, 1], [0, 2]], dtype=np.int32),
         tx=np.array([0, 1], dtype=np.int32),
-        mean=mean,
-        var=np.full((3, 2), 4.0, dtype=np.float32),
-        detect=np.full((3, 2), 0.99, dtype=np.float32),
-        weight=np.ones(3, dtype=np.float32),
+        mean=SURVEYED.astype(np.float32),
+        var=np.full((n, 2), 4.0, dtype=np.float32),
+        detect=np.full((n, 2), 0.99, dtype=np.float32),
+        weight=np.ones(n, dtype=np.float32),
+        references=MapReferences(
+            xy=np.array([[0.5, 0.5], [1.5, 0.5], [2.5, 0.5]], dtype=np.float32),
+            walk=np.zeros(n, dtype=np.int32),
+            scan=np.repeat(np.arange(n), 2).astype(np.int32),
+            col=np.tile([0, 1], n).astype(np.int32),
+            rssi=SURVEYED.ravel().astype(np.float32),
+        ),
     )
 
 
-def test_anchor_cost_is_the_capped_tempered_likelihood_deficit() -> None:
-    scan = WifiScan(point=2, tx=np.array([0, 1]), rssi=np.array([-40.0, -44.0]))
-    costs = wifi_anchor_costs(radio_map(), [scan])
-    # ln N(s; μ, 4) falls by Δ² / 8 per transmitter: 0, 2 · 4 / 8, 2 · 16 / 8
-    np.testing.assert_allclose(costs.deficit[0, 0, :3], [0.0, 1.0, 4.0], rtol=1e-5, atol=1e-6)
-    # nobody surveyed x > 3: it takes its nearest reference point's deficit
-    assert costs.deficit[0, 0, 3] == costs.deficit[0, 0, 2]
-    xy = np.array([[0.5, 0.5], [1.5, 0.5], [2.5, 0.5], [3.5, 0.5]])
+def anchors_of(scans: list[WifiScan], sigma: float) -> AnchorCosts:
+    m = radio_map()
+    # three survey scans: every transmitter counts however rarely heard
+    refs = ReferenceScans.from_maps((m,), 2, ScanKnnParams(min_heard=1))
+    return wifi_anchor_costs(m, refs, scans, sigma)
+
+
+def test_anchor_cost_is_the_mixture_of_the_scans_nearest_survey_scans() -> None:
+    # the scan is the first survey scan again: its match outweighs the others by (d/d_min)^-4
+    scan = WifiScan(point=2, tx=np.array([0, 1]), rssi=SURVEYED[0])
+    costs = anchors_of([scan], sigma=2.0)
+    # one Gaussian at x = 0.5: ℓ_max - ℓ(x) = (x - 0.5)² / 2σ², also where nobody surveyed
+    x = np.arange(6) + 0.5
+    np.testing.assert_allclose(costs.deficit[0, 0], (x - 0.5) ** 2 / 8.0, atol=1e-3)
+    xy = np.column_stack([x[:4], np.full(4, 0.5)])
     np.testing.assert_allclose(
-        costs.cost(0, xy, weight=1.0, cap=2.5), [0.0, 1.0, 2.5, 2.5], atol=1e-6
+        costs.cost(0, xy, weight=1.0, cap=1.0), [0.0, 0.125, 0.5, 1.0], atol=1e-3
     )
+
+
+def test_a_scan_between_survey_scans_is_a_broad_anchor_between_them() -> None:
+    # halfway in signal space between the first two survey scans: two equal modes
+    scan = WifiScan(point=1, tx=np.array([0, 1]), rssi=SURVEYED[:2].mean(axis=0))
+    deficit = anchors_of([scan], sigma=1.0).deficit[0, 0]
+    assert deficit[0] == pytest.approx(deficit[1], abs=0.05)
+    assert deficit[0] < deficit[2] < deficit[3]
 
 
 def test_anchors_pick_the_rotation_the_plan_cannot() -> None:
@@ -203,13 +230,12 @@ def test_anchors_pick_the_rotation_the_plan_cannot() -> None:
     free = np.ones((40, 40), dtype=bool)
     free[[0, -1], :] = free[:, [0, -1]] = False
     hall = FloorPlan.from_raster(origin=np.zeros(2), cell=cell, free=free)
-    m = radio_map()
-    scan = WifiScan(point=2, tx=np.array([0, 1]), rssi=np.array([-44.0, -40.0]))
-    anchors = wifi_anchor_costs(m, [scan])
+    scan = WifiScan(point=2, tx=np.array([0, 1]), rssi=SURVEYED[2])
+    anchors = anchors_of([scan], sigma=1.0)
     found = search_track(
         hall, np.array([0.5, 0.5]), np.array([1.0, 1.0]), np.zeros(2), anchors=anchors
     )
-    # the scan matches the cell at 2 < x < 3: the track went east
+    # the scan matches the survey scan at x = 2.5: the track went east
     assert 2.0 <= found.best.fit.points[-1, 0] < 3.0
     assert found.best.fit.points[-1, 1] < 1.0
 
