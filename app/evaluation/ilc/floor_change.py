@@ -1,22 +1,21 @@
-"""How fast the particle filter's floor follows a device that changes floor, on ILC site1.
+"""How fast the phone engine follows a change of floor, on joined held-out walks of site1.
 
-Every ILC walk stays on one floor, so a change of floor is built: walk A is
-replayed, then walk B of another floor with its times shifted to start one
-window after A's end, as one device. Both walks are held out (validation or
-test, as ``locus eval ilc`` splits them); everything is learned from the
-training walks. B is paired to A as the next walk in id order on another
-floor, so every held-out walk is an A once.
+Every site1 walk stays on one floor, so a floor change is made by joining
+two held-out walks recorded on different floors: the second is shifted in
+time to start where the first ends, as if the walker had stepped off an
+escalator at the second walk's start. This is harsher than a real change (no
+gradual fade of the old floor's access points on the way, no barometer: ILC
+recorded none), so the latencies are an upper bound of what a walker sees.
+Each walk is paired with the next held-out walk in id order on another floor.
 
-The change is abrupt: a real one passes through stairs, an escalator or a
-lift, where readings of both floors mix for a while, and a barometer (ILC
-recorded none) would show the climb. Reported per method: seconds from the
-change to the first estimate on B's floor ("first"), to the first estimate
-on it that no estimate off it follows ("settled"), and from B's first WiFi
-scan to the first estimate on B's floor ("after scan"); the share of
-estimates on a wrong floor before the change; and the share off B's floor
-after the first estimate on it (flicker back).
+A fresh server is surveyed with the training walks and builds its radio map
+through the API (``built_site``); every joined walk then goes through a
+worker's device session on that build (``replay_stages``), the path the
+server's workers run. The latency of a stage is the time from the change
+until its positions are on the new floor for good (the first position after
+which none is on another floor); a change never followed counts apart.
 
-Run ``locus eval ilc-floor-change`` or ``python -m app.evaluation.ilc.floor_change``.
+Run ``locus eval ilc-floor-change [--validation-fraction 0.2] [--limit N]``.
 """
 
 from __future__ import annotations
@@ -27,168 +26,166 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from app.core.config import Settings
 from app.datasets.ilc import Walk
-from app.engine.samples import Batch, Estimate
-from app.evaluation.ilc.experiment import add_split_arguments, prepare_experiment
-from app.evaluation.ilc.learn import Learned, remap
-from app.evaluation.ilc.methods import PARTICLE_FILTERS, pf_engine
-from app.evaluation.ilc.recordings import SiteRecordings, walk_batches
-from app.evaluation.ilc.replay import replay_devices
+from app.engine.samples import Estimate
+from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages
+from app.evaluation.ilc.server import SITE_ID, add_site_arguments, built_site, split_site
+from app.workers.trackers import SiteEngines
 
-WINDOW_MS = 1000
-"""Batch length (ms) of the replay, the engine's positioning window."""
+STAGES_TIMED = (STAGES[1], STAGES[2])
+"""The live positions and the history as served (refined where refined)."""
 
 
-def shifted(batch: Batch, shift_ms: int) -> Batch:
-    """Return the batch with its RSSI and inertial times moved by ``shift_ms``."""
+def _shifted(rows: np.ndarray, dt: int) -> np.ndarray:
+    out = rows.copy()
+    out[:, 0] += dt
+    return out
+
+
+def joined_walk(first: Walk, second: Walk) -> Walk:
+    """Return ``first`` then ``second``, shifted to start at ``first``'s last waypoint.
+
+    Each keeps its samples between its first and last waypoints; the joined
+    walk is on ``second``'s floor (its waypoints are both walks').
+    """
+    end, start = int(first.waypoints[-1, 0]), int(second.waypoints[0, 0])
+    dt = end - start
+
+    def rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        b = _shifted(b, dt)
+        return np.vstack([a[a[:, 0] <= end], b[b[:, 0] > end]])
+
+    a_wifi, b_wifi = first.wifi, second.wifi
+    keep_a, keep_b = a_wifi.t <= end, second.wifi.t + dt > end
+    wifi = replace(
+        a_wifi,
+        **{
+            name: np.concatenate([getattr(a_wifi, name)[keep_a], getattr(b_wifi, name)[keep_b]])
+            for name in ("bssid", "rssi", "freq")
+        },
+        t=np.concatenate([a_wifi.t[keep_a], b_wifi.t[keep_b] + dt]),
+        last_seen=np.concatenate([a_wifi.last_seen[keep_a], b_wifi.last_seen[keep_b] + dt]),
+    )
+    a_ble, b_ble = first.beacons, second.beacons
+    on_a, on_b = a_ble.t <= end, b_ble.t + dt > end
+    beacons = replace(
+        a_ble,
+        **{
+            name: np.concatenate([getattr(a_ble, name)[on_a], getattr(b_ble, name)[on_b]])
+            for name in ("id", "rssi", "tx_power", "mac")
+        },
+        t=np.concatenate([a_ble.t[on_a], b_ble.t[on_b] + dt]),
+    )
     return replace(
-        batch,
-        rssi=replace(batch.rssi, t=batch.rssi.t + shift_ms),
-        imu=replace(batch.imu, t=batch.imu.t + shift_ms),
+        second,
+        walk_id=f"{first.walk_id}+{second.walk_id}",
+        acc=rows(first.acc, second.acc),
+        gyro=rows(first.gyro, second.gyro),
+        mag=rows(first.mag, second.mag),
+        rot=rows(first.rot, second.rot),
+        wifi=wifi,
+        beacons=beacons,
+        waypoints=np.vstack([first.waypoints, _shifted(second.waypoints[1:], dt)]),
     )
 
 
-def pair_walks(walks: Sequence[Walk]) -> list[tuple[Walk, Walk]]:
-    """Pair each walk with the next one (in id order, cyclically) on another floor."""
+def settle_latency(track: Sequence[Estimate], change_t: int, floor: int) -> float | None:
+    """Return the seconds from ``change_t`` until ``track`` is on ``floor`` for good.
+
+    None when its last position is on another floor (the change was never followed).
+    """
+    after = [e for e in track if e.t > change_t]
+    if not after or after[-1].floor != floor:
+        return None
+    wrong = [e.t for e in after if e.floor != floor]
+    if not wrong:
+        return (after[0].t - change_t) / 1000.0
+    settled = next(e.t for e in after if e.t > wrong[-1])
+    return (settled - change_t) / 1000.0
+
+
+def floor_pairs(walks: Sequence[Walk], limit: int) -> list[tuple[Walk, Walk]]:
+    """Pair each walk (in id order) with the next one on another floor, at most ``limit``."""
     ordered = sorted(walks, key=lambda w: w.walk_id)
     pairs = []
-    for i, a in enumerate(ordered):
-        b = next((w for w in ordered[i + 1 :] + ordered[:i] if w.floor != a.floor), None)
-        if b is not None:
-            pairs.append((a, b))
-    return pairs
+    for i, first in enumerate(ordered):
+        nxt = next((w for w in ordered[i + 1 :] + ordered[:i] if w.floor != first.floor), None)
+        if nxt is not None:
+            pairs.append((first, nxt))
+    return pairs[:limit]
 
 
 @dataclass(frozen=True)
-class Joined:
-    """Two walks replayed as one device: batches, the change time (ms) and B's first scan (ms)."""
+class FloorChanges:
+    """Per stage, each joined walk's latency (s; NaN where the change was never followed)."""
 
-    device_id: str
-    batches: list[Batch]
-    change_t: int
-    first_scan_t: int
-    floor_a: int
-    floor_b: int
+    latency: dict[str, np.ndarray]
 
-
-def join(site: SiteRecordings, a: Walk, b: Walk) -> Joined:
-    """Concatenate the batches of ``a`` and ``b``, B shifted to start one window after A ends."""
-    first = list(walk_batches(site, a, WINDOW_MS))
-    second = list(walk_batches(site, b, WINDOW_MS))
-    end_a = max(int(x.rssi.t.max(initial=0)) for x in first)
-    end_a = max(end_a, max(int(x.imu.t.max(initial=0)) for x in first))
-    start_b = min(int(min(x.rssi.t.min(initial=2**62), x.imu.t.min(initial=2**62))) for x in second)
-    # B starts at the window after A's last sample, on the window grid
-    change = (end_a // WINDOW_MS + 1) * WINDOW_MS
-    shift = change - start_b
-    moved = [shifted(x, shift) for x in second]
-    scans = [int(x.rssi.t.min()) for x in moved if len(x.rssi)]
-    return Joined(
-        device_id=f"{a.walk_id}+{b.walk_id}",
-        batches=first + moved,
-        change_t=change,
-        first_scan_t=scans[0] if scans else change,
-        floor_a=site.floor_index(a),
-        floor_b=site.floor_index(b),
-    )
+    def rows(self) -> list[tuple[str, int, float, float, float, int]]:
+        """Return (stage, walks, p50, p90, max, never followed) per stage."""
+        out = []
+        for name, lat in self.latency.items():
+            ok = lat[np.isfinite(lat)]
+            q = (
+                (float(np.median(ok)), float(np.percentile(ok, 90)), float(ok.max()))
+                if ok.size
+                else (np.nan,) * 3
+            )
+            out.append((name, int(lat.size), *q, int(np.isnan(lat).sum())))
+        return out
 
 
-def replay_joined(
-    learned: Learned, joined: Sequence[Joined], name: str
-) -> dict[str, list[Estimate]]:
-    """Replay the joined walks as devices of one engine; return each device's estimates."""
-    result = replay_devices(
-        pf_engine(name, learned),
-        {j.device_id: iter(j.batches) for j in joined},
-        transform=lambda b: remap(b, learned.pf_lookup),
-    )
-    return result.estimates
-
-
-@dataclass(frozen=True)
-class Latency:
-    """One joined device's floor switch: seconds after the change, and wrong-floor counts."""
-
-    first_s: float
-    settled_s: float
-    after_scan_s: float
-    wrong_before: int
-    n_before: int
-    wrong_after: int
-    n_after: int
-    """Estimates off B's floor after the first one on it, and estimates after that one."""
-
-
-def latency(j: Joined, estimates: Sequence[Estimate]) -> Latency:
-    """Measure when the estimates reach and stay on B's floor (inf when they never do)."""
-    t = np.array([e.t for e in estimates], dtype=np.int64)
-    floor = np.array([e.floor for e in estimates], dtype=np.int64)
-    before, after = t < j.change_t, t >= j.change_t
-    on_b = after & (floor == j.floor_b)
-    first = float((t[on_b][0] - j.change_t) / 1000.0) if on_b.any() else float("inf")
-    off_b = after & (floor != j.floor_b)
-    # settled: the first estimate on B's floor after the last one off it
-    stays = on_b & (t > t[off_b].max()) if off_b.any() else on_b
-    settled = float((t[stays][0] - j.change_t) / 1000.0) if stays.any() else float("inf")
-    after_scan = first - (j.first_scan_t - j.change_t) / 1000.0
-    # back off B's floor once there: flicker
-    since = after & (t > (t[on_b][0] if on_b.any() else np.iinfo(np.int64).max))
-    return Latency(
-        first_s=first,
-        settled_s=settled,
-        after_scan_s=after_scan,
-        wrong_before=int((floor[before] != j.floor_a).sum()),
-        n_before=int(before.sum()),
-        wrong_after=int((floor[since] != j.floor_b).sum()),
-        n_after=int(since.sum()),
-    )
-
-
-def describe(values: np.ndarray) -> str:
-    """Return median, 90th percentile and maximum of finite values, and how many are not."""
-    finite = values[np.isfinite(values)]
-    never = int((~np.isfinite(values)).sum())
-    if finite.size == 0:
-        return f"never ({never})"
-    text = (
-        f"median {np.median(finite):.1f} s, p90 {np.percentile(finite, 90):.1f} s, "
-        f"max {finite.max():.1f} s"
-    )
-    return text + (f", never {never}" if never else "")
+def measure_floor_changes(
+    engines: SiteEngines,
+    site_id: str,
+    pairs: Sequence[tuple[Walk, Walk]],
+    floors: Sequence[str],
+    *,
+    wifi_times: str,
+    settings: Settings,
+) -> FloorChanges:
+    """Replay every joined pair through a device session and time its floor change."""
+    latency: dict[str, list[float]] = {name: [] for name in STAGES_TIMED}
+    for first, second in pairs:
+        walk = joined_walk(first, second)
+        run = replay_stages(
+            engines,
+            site_id,
+            [walk],
+            floors,
+            wifi_times=wifi_times,
+            settings=settings,
+            keep=[walk.walk_id],
+        )
+        change_t = int(first.waypoints[-1, 0])
+        for name in STAGES_TIMED:
+            got = settle_latency(run.tracks[walk.walk_id][name], change_t, floors.index(walk.floor))
+            latency[name].append(np.nan if got is None else got)
+    return FloorChanges({k: np.array(v, dtype=float) for k, v in latency.items()})
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Learn on the training walks, replay joined held-out walks and print the switch latency."""
+    """Build a server from the training walks, replay joined held-out walks, print latencies."""
     parser = argparse.ArgumentParser(
         prog="locus eval ilc-floor-change",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
-    add_split_arguments(parser, "join its walks instead of the test walks")
-    parser.add_argument("--limit", type=int, help="at most this many pairs")
-    parser.add_argument(
-        "--methods", nargs="+", default=list(PARTICLE_FILTERS), choices=PARTICLE_FILTERS
-    )
+    add_site_arguments(parser, "join its walks instead of the test walks")
+    parser.add_argument("--limit", type=int, default=1000, help="at most this many pairs")
     args = parser.parse_args(argv)
-    exp = prepare_experiment(args)
-    pairs = pair_walks(exp.held_out_walks())[: args.limit]
-    joined = [join(exp.site, a, b) for a, b in pairs]
-    print(f"site1: {len(pairs)} pairs of held-out {exp.held_out_kind} walks on different floors")
-    for name in args.methods:
-        estimates = replay_joined(exp.learned, joined, name)
-        lat = [latency(j, estimates[j.device_id]) for j in joined]
-        first = np.array([x.first_s for x in lat])
-        settled = np.array([x.settled_s for x in lat])
-        after_scan = np.array([x.after_scan_s for x in lat])
-        wb, nb = sum(x.wrong_before for x in lat), sum(x.n_before for x in lat)
-        wa, na = sum(x.wrong_after for x in lat), sum(x.n_after for x in lat)
-        print(f"{name}:")
-        print(f"  first estimate on the new floor after the change: {describe(first)}")
-        print(f"  settled on the new floor after the change:        {describe(settled)}")
-        print(f"  first estimate on the new floor after its first scan: {describe(after_scan)}")
-        print(
-            f"  wrong floor before the change {100.0 * wb / max(nb, 1):.2f}% of {nb}; "
-            f"back off the new floor once on it {100.0 * wa / max(na, 1):.2f}% of {na}"
+    site_dir, floors, train, held = split_site(args)
+    pairs = floor_pairs(held, args.limit)
+    print(f"{len(pairs)} pairs of held-out walks on different floors, {len(train)} surveys")
+    with built_site(site_dir, floors, train, wifi_times=args.wifi_times) as (srv, _, _):
+        settings = Settings()
+        engines = load_engines(srv.database_url, SITE_ID, settings)
+        changes = measure_floor_changes(
+            engines, SITE_ID, pairs, floors, wifi_times=args.wifi_times, settings=settings
         )
+    print(f"{'stage':<26} {'pairs':>5} {'p50 s':>6} {'p90 s':>6} {'max s':>6} {'never':>5}")
+    for name, n, p50, p90, top, never in changes.rows():
+        print(f"{name:<26} {n:>5} {p50:>6.1f} {p90:>6.1f} {top:>6.1f} {never:>5}")
 
 
 if __name__ == "__main__":

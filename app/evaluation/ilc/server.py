@@ -31,8 +31,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -136,6 +137,34 @@ def _upload_site(
                 raise RuntimeError(f"survey {b['name']} refused: {r.status_code} {r.text[:300]}")
 
 
+@contextmanager
+def built_site(
+    site_dir: Path,
+    floors: Sequence[str],
+    train: Sequence[Walk],
+    *,
+    wifi_times: str = "scan",
+    tuning: bool = True,
+    status: Callable[[str], None] = lambda _: None,
+) -> Iterator[tuple[LocalServer, httpx.Client, dict[str, Any]]]:
+    """Start a fresh server, survey it with ``train`` and build its radio map through the API;
+    yield the server, a client with the admin key and the build's summary."""
+    if wifi_times not in WIFI_TIMES:
+        raise ValueError(f"wifi_times must be one of {WIFI_TIMES}")
+    with (
+        tempfile.TemporaryDirectory(prefix="locus-eval-") as home,
+        LocalServer(Path(home), env={"LOCUS_RADIOMAP_TUNING": str(tuning).lower()}) as srv,
+    ):
+        headers = {"Authorization": f"Bearer {srv.key}"}
+        with httpx.Client(base_url=srv.url, headers=headers, timeout=1800) as http:
+            status(f"uploading {len(floors)} floors and {len(train)} surveys")
+            _upload_site(http, site_dir, floors, train, wifi_times)
+            status("building the radio map through the API")
+            r = http.post(f"/v1/sites/{SITE_ID}/radiomap/build")
+            r.raise_for_status()
+            yield srv, http, r.json()
+
+
 def evaluate_through_server(
     site_dir: Path,
     floors: Sequence[str],
@@ -152,36 +181,25 @@ def evaluate_through_server(
     """Start a server, survey and build it from ``train``, replay ``test`` and score it;
     ``with_stages``, also score each stage of the phone engine in process on its build,
     keeping the stages' estimates of the walks named in ``keep``."""
-    if wifi_times not in WIFI_TIMES:
-        raise ValueError(f"wifi_times must be one of {WIFI_TIMES}")
-    with (
-        tempfile.TemporaryDirectory(prefix="locus-eval-") as home,
-        LocalServer(Path(home), env={"LOCUS_RADIOMAP_TUNING": str(tuning).lower()}) as srv,
-    ):
-        headers = {"Authorization": f"Bearer {srv.key}"}
-        with httpx.Client(base_url=srv.url, headers=headers, timeout=1800) as http:
-            status(f"uploading {len(floors)} floors and {len(train)} surveys")
-            _upload_site(http, site_dir, floors, train, wifi_times)
-            status("building the radio map through the API")
-            r = http.post(f"/v1/sites/{SITE_ID}/radiomap/build")
-            r.raise_for_status()
-            build = r.json()
-            status("replaying the held-out walks")
-            started = time.perf_counter()
-            scores, positions = [], {}
-            for i, walk in enumerate(test):
-                got = replay_samples(
-                    http,
-                    walk_samples(walk, wifi_times=wifi_times),
-                    site_id=SITE_ID,
-                    device_id=f"replay-{walk.walk_id}",
-                    sent_at={"wifi": walk.wifi.t.tolist()},
-                )
-                positions[walk.walk_id] = got
-                estimates = estimates_from_positions(got, floors)
-                scores.append(score_walk(walk.waypoints, floors.index(walk.floor), estimates))
-                progress(i + 1)
-            wall_s = time.perf_counter() - started
+    with built_site(
+        site_dir, floors, train, wifi_times=wifi_times, tuning=tuning, status=status
+    ) as (srv, http, build):
+        status("replaying the held-out walks")
+        started = time.perf_counter()
+        scores, positions = [], {}
+        for i, walk in enumerate(test):
+            got = replay_samples(
+                http,
+                walk_samples(walk, wifi_times=wifi_times),
+                site_id=SITE_ID,
+                device_id=f"replay-{walk.walk_id}",
+                sent_at={"wifi": walk.wifi.t.tolist()},
+            )
+            positions[walk.walk_id] = got
+            estimates = estimates_from_positions(got, floors)
+            scores.append(score_walk(walk.waypoints, floors.index(walk.floor), estimates))
+            progress(i + 1)
+        wall_s = time.perf_counter() - started
         stages = None
         if with_stages:
             status("the same walks in process, stage by stage, on the server's build")
@@ -220,16 +238,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="locus eval ilc-server", description=__doc__.splitlines()[0] if __doc__ else None
     )
-    add_split_arguments(parser, "evaluate on it instead of the test walks")
+    add_site_arguments(parser, "evaluate on it instead of the test walks")
     parser.add_argument("--limit", type=int, help="at most this many evaluated walks (id order)")
-    parser.add_argument("--floors", nargs="+", help="only these floors (a smaller building)")
-    parser.add_argument(
-        "--train-share",
-        type=float,
-        default=1.0,
-        help="survey only this share of the training walks (by walk id hash)",
-    )
-    parser.add_argument("--wifi-times", choices=WIFI_TIMES, default="scan")
     parser.add_argument(
         "--no-tuning",
         action="store_true",
@@ -241,14 +251,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    """Run site1's walk split through a fresh server and print its row and chosen constants."""
-    from rich.console import Console
-    from rich.progress import Progress
-    from rich.table import Table
-
-    args = parse_args(argv)
-    console = Console(width=max(Console().width, 160))
+def split_site(args: argparse.Namespace) -> tuple[Path, list[str], list[Walk], list[Walk]]:
+    """Return the site folder, its floors (by level), the surveyed training walks and the
+    held-out walks (validation or test, at least two waypoints, id order) the options name."""
     site_dir = args.site or data_dir() / "ilc" / "site1"
     pairs = [(f, p) for f, p in site_walks(site_dir) if not args.floors or f in args.floors]
     ids = [path.name.split(".")[0] for _, path in pairs]
@@ -262,8 +267,33 @@ def main(argv: Sequence[str] | None = None) -> None:
     held = sorted(
         (w for w in walks if w.walk_id in held_ids and w.waypoints.shape[0] >= 2),
         key=lambda w: w.walk_id,
-    )[: args.limit]
-    train_walks = [w for w in walks if w.walk_id in surveyed]
+    )
+    return site_dir, floors, [w for w in walks if w.walk_id in surveyed], held
+
+
+def add_site_arguments(parser: argparse.ArgumentParser, validation_use: str) -> None:
+    """Add the split, floor subset, surveyed share and WiFi timing options."""
+    add_split_arguments(parser, validation_use)
+    parser.add_argument("--floors", nargs="+", help="only these floors (a smaller building)")
+    parser.add_argument(
+        "--train-share",
+        type=float,
+        default=1.0,
+        help="survey only this share of the training walks (by walk id hash)",
+    )
+    parser.add_argument("--wifi-times", choices=WIFI_TIMES, default="scan")
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Run site1's walk split through a fresh server and print its row and chosen constants."""
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    args = parse_args(argv)
+    console = Console(width=max(Console().width, 160))
+    site_dir, floors, train_walks, held = split_site(args)
+    held = held[: args.limit]
     console.print(
         f"{len(floors)} floors, {len(train_walks)} survey walks, {len(held)} held-out walks; "
         f"WiFi timed by {args.wifi_times}"
