@@ -79,7 +79,7 @@ def joined_walk(first: Walk, second: Walk) -> Walk:
     )
     return replace(
         second,
-        walk_id=f"{first.walk_id}+{second.walk_id}",
+        walk_id=f"{first.walk_id}-{second.walk_id}",
         acc=rows(first.acc, second.acc),
         gyro=rows(first.gyro, second.gyro),
         mag=rows(first.mag, second.mag),

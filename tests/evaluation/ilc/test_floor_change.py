@@ -45,7 +45,7 @@ def _walk(walk_id: str, floor: str, t0: int) -> Walk:
 def test_the_second_walk_starts_where_the_first_ends_on_its_own_floor() -> None:
     first, second = _walk("a", "F1", 1_000_000), _walk("b", "F2", 5_000_000)
     joined = joined_walk(first, second)
-    assert joined.floor == "F2" and joined.walk_id == "a+b"
+    assert joined.floor == "F2" and joined.walk_id == "a-b"
     end = 1_010_000
     # every sample of both, in time order, the second's shifted by end - its start
     assert joined.acc.shape[0] == first.acc.shape[0] + second.acc.shape[0] - 1
