@@ -362,7 +362,7 @@ def format_summary(results: list[FitResult]) -> str:
     header = (
         f"{'heading':<8} {'anchors':<8} {'walks':>5} {'raw mean':>8} {'raw p50':>7} "
         f"{'raw p95':>7} {'fit mean':>8} {'fit p50':>7} {'fit p95':>7} {'fit/raw':>7} "
-        f"{'failed':>6} {'ambig':>5} {'sure mean':>9} {'s med':>6} {'s max':>6}"
+        f"{'failed':>6} {'ambig':>5} {'sure mean':>9} {'sure raw':>8} {'s med':>6} {'s max':>6}"
     )
     lines = [header, "-" * len(header)]
     for heading, anchored in SETTINGS:
@@ -372,15 +372,16 @@ def format_summary(results: list[FitResult]) -> str:
         raw = np.concatenate([r.raw for r in rs])
         fit = np.concatenate([r.fitted for r in rs])
         secs = np.array([r.seconds for r in rs])
-        sure = [r.fitted for r in rs if not r.ambiguous]
-        sure_mean = np.concatenate(sure).mean() if sure else np.nan
+        sure = [r for r in rs if not r.ambiguous]
+        sure_mean = np.concatenate([r.fitted for r in sure]).mean() if sure else np.nan
+        sure_raw = np.concatenate([r.raw for r in sure]).mean() if sure else np.nan
         lines.append(
             f"{heading:<8} {'every ' + str(int(SCAN_EVERY_S)) + 's' if anchored else 'none':<8} "
             f"{len(rs):>5} {raw.mean():>8.2f} {np.median(raw):>7.2f} "
             f"{np.percentile(raw, 95):>7.2f} {fit.mean():>8.2f} {np.median(fit):>7.2f} "
             f"{np.percentile(fit, 95):>7.2f} {fit.mean() / raw.mean():>7.2f} "
             f"{sum(r.failed is not None for r in rs):>6} {sum(r.ambiguous for r in rs):>5} "
-            f"{sure_mean:>9.2f} {np.median(secs):>6.2f} {secs.max():>6.2f}"
+            f"{sure_mean:>9.2f} {sure_raw:>8.2f} {np.median(secs):>6.2f} {secs.max():>6.2f}"
         )
     return "\n".join(lines)
 
@@ -429,6 +430,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--limit", type=int, default=0, help="at most this many walks")
     parser.add_argument("--time-limit", type=float, default=30.0)
     parser.add_argument("--screen-weight", type=float, default=TrackSearchParams().screen_weight)
+    parser.add_argument(
+        "--ambiguity-margin", type=float, default=TrackSearchParams().ambiguity_margin
+    )
     parser.add_argument("--scale-links", type=float, default=TrackSearchParams().scale_links)
     parser.add_argument("--drift-seconds", type=float, default=TrackSearchParams().drift_seconds)
     parser.add_argument(
@@ -454,6 +458,7 @@ def main(argv: list[str] | None = None) -> None:
             fit=fit,
             screen_weight=args.screen_weight,
             scale_links=args.scale_links,
+            ambiguity_margin=args.ambiguity_margin,
             drift_seconds=args.drift_seconds,
         ),
     )
@@ -519,7 +524,7 @@ def main(argv: list[str] | None = None) -> None:
     print()
     print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
     print("ambig: fits whose runner-up (a distinct track) scored within the ambiguity margin;")
-    print("sure mean: fitted mean error of the fits not flagged ambiguous")
+    print("sure mean / sure raw: fitted / raw mean error of the fits not flagged ambiguous")
     print(format_summary(results))
     print()
     print("fitted / raw mean (m) per floor")
