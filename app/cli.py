@@ -266,8 +266,8 @@ EVALUATIONS = {
     "uwb": "app.evaluation.uwb_eval",
     "locator": "app.evaluation.locator_eval",
     "locator-http": "app.evaluation.locator_http",
-    "ilc": "app.evaluation.ilc.cli",
-    "ilc-server": "app.evaluation.ilc.server",
+    "ilc": "app.evaluation.ilc.server",
+    "ilc-methods": "app.evaluation.ilc.cli",
     "ilc-floor-change": "app.evaluation.ilc.floor_change",
 }
 

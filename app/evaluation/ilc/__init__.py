@@ -13,6 +13,6 @@ per step, each depending only on those above it:
 - ``evaluate``: every method replayed on the held-out walks and scored;
 - ``experiment``: the split options, the split and the learning every run starts from;
 - ``table`` and ``plots``: the printed table and the walk plots;
-- ``cli``: ``locus eval ilc``; ``floor_change``: ``locus eval ilc-floor-change`` (the
+- ``cli``: ``locus eval ilc-methods``; ``floor_change``: ``locus eval ilc-floor-change`` (the
   server's phone engine following a change of floor).
 """

@@ -2,7 +2,7 @@
 
 Learns on the training walks, replays the held-out walks through every
 method, prints the table and optionally plots a few walks. Run
-``locus eval ilc`` or ``python -m app.evaluation.ilc.cli``.
+``locus eval ilc-methods`` or ``python -m app.evaluation.ilc.cli``.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from app.importers.ilc import WIFI_TIMES
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    """Parse the options of ``locus eval ilc``."""
+    """Parse the options of ``locus eval ilc-methods``."""
     parser = argparse.ArgumentParser(
-        prog="locus eval ilc", description=__doc__.splitlines()[0] if __doc__ else None
+        prog="locus eval ilc-methods", description=__doc__.splitlines()[0] if __doc__ else None
     )
     add_split_arguments(parser, "evaluate on it instead of the test walks")
     parser.add_argument("--limit", type=int, help="at most this many evaluated walks (id order)")

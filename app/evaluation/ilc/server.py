@@ -234,9 +234,9 @@ def _plot_stages(
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    """Parse the options of ``locus eval ilc-server``."""
+    """Parse the options of ``locus eval ilc``."""
     parser = argparse.ArgumentParser(
-        prog="locus eval ilc-server", description=__doc__.splitlines()[0] if __doc__ else None
+        prog="locus eval ilc", description=__doc__.splitlines()[0] if __doc__ else None
     )
     add_site_arguments(parser, "evaluate on it instead of the test walks")
     parser.add_argument("--limit", type=int, help="at most this many evaluated walks (id order)")
