@@ -125,6 +125,11 @@ def run_fit(job: dict[str, Any]) -> dict[str, Any]:
         }
     t_points = [request["t0"], *(s["t"] for s in segments)]
     best, runner_up = found.best, found.runner_up
+    # the radius of the last point: the grid, the ends of as-good fits, and an ambiguous
+    # runner-up's end (either may be the walker)
+    accuracy = max(params.fit.grid / 2, best.fit.spread)
+    if found.ambiguous and runner_up is not None:
+        accuracy = max(accuracy, float(np.hypot(*(runner_up.fit.points[-1] - best.fit.points[-1]))))
     candidates = [_candidate(best, None)]
     if runner_up is not None:
         shown = _points(t_points, runner_up.fit.points) if found.ambiguous else None
@@ -141,6 +146,7 @@ def run_fit(job: dict[str, Any]) -> dict[str, Any]:
         "drift": round(math.degrees(best.drift), 3),
         "relaxed": best.fit.relaxed.astype(int).tolist(),
         "spread": round(best.fit.spread, 3),
+        "accuracy": round(accuracy, 3),
         "anchors": len(anchors) if anchors is not None else 0,
         "ambiguous": found.ambiguous,
         "candidates": candidates,

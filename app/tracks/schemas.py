@@ -131,6 +131,9 @@ class TrackRead(BaseModel):
     """Per link: 0 placed normally, 1 with wider changes, 2 across a wall, 3 dead-reckoned."""
     spread: float | None = None
     """How far apart (m) the ends of fits scoring as well as the chosen one lie."""
+    accuracy: float | None = None
+    """Radius (m) of the last point, the device's position: half the grid, the spread, and
+    when the fit is ambiguous the distance to the runner-up's end (either may be the walker)."""
     anchors: int | None = None
     """WiFi scans scored against the radio map."""
     ambiguous: bool | None = None

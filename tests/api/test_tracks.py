@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -11,6 +12,7 @@ from fastapi.testclient import TestClient
 
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
+from app.tracks.fitting import run_fit
 from tests.conftest import floor_doc
 
 T0 = 1_700_000_000_000
@@ -110,6 +112,10 @@ def test_fit_reports_what_it_chose(client: TestClient, admin: dict, site_id: str
     assert len(result["relaxed"]) == 14 and set(result["relaxed"]) <= {0, 1, 2, 3}
     assert result["spread"] >= 0 and result["anchors"] == 0
     assert isinstance(result["ambiguous"], bool)
+    # the device's position carries the fit's own radius
+    assert result["accuracy"] >= max(0.5, result["spread"])
+    latest = client.get(f"/v1/devices/{site_id}-saver/position", headers=admin).json()
+    assert latest["accuracy"] == result["accuracy"]
     best = result["candidates"][0]
     assert best["score"] == pytest.approx(result["score"], abs=1e-3)
     assert best["rotation"] == result["rotation"] and best["points"] is None
@@ -130,6 +136,30 @@ def test_withheld_heading_reports_the_runner_up(
         assert other["score"] >= best["score"]
         # an ambiguous fit shows the runner-up's track too
         assert (other["points"] is not None) == result["ambiguous"]
+
+
+def test_an_ambiguous_fits_radius_reaches_the_runner_ups_end() -> None:
+    # 4 m straight from the middle of the open west room, heading withheld: the plan cannot
+    # say which way the walker went, and the position the fit sets must not claim it knows
+    segments = [
+        {"t": T0 + 1000 * (i + 1), "length": 1.0, "turn": 0.0, "wifi": None} for i in range(4)
+    ]
+    request = {"start": {"x": 5.0, "y": 5.0}, "t0": T0, "segments": segments, "heading": None}
+    job = {
+        "site_id": "s",
+        "floor_id": "G",
+        "version": 1,
+        "floor_doc": json.dumps(floor_doc()),
+        "request": request,
+        "radiomap": None,
+        "cell": 0.25,
+        "time_limit_s": 10.0,
+    }
+    result = run_fit(job)
+    assert result["status"] == "done" and result["ambiguous"], result
+    end, rival = result["points"][-1], result["candidates"][1]["points"][-1]
+    gap = math.hypot(end["x"] - rival["x"], end["y"] - rival["y"])
+    assert gap > 3.0 and result["accuracy"] >= gap - 1e-3
 
 
 def test_scans_on_a_site_without_radio_maps_are_accepted_and_not_used(
