@@ -14,11 +14,13 @@ from app.engine.plan import FloorPlan, burn_segments
 from app.engine.radiomap import MapReferences, RadioMap
 from app.engine.scan_knn import ReferenceScans, ScanKnnParams
 from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
-from app.engine.trackfit.fit import TrackFitParams, fit_track, fit_tracks
+from app.engine.trackfit.fit import TrackFit, TrackFitParams, fit_track, fit_tracks
 from app.engine.trackfit.search import (
+    Candidate,
     TrackSearchParams,
     hypothesis_turns,
     rigid_tracks,
+    rival_of,
     search_track,
 )
 
@@ -262,3 +264,27 @@ def test_hypotheses_fitted_together_equal_each_fitted_alone() -> None:
         assert together[h].score == pytest.approx(alone.score)
         np.testing.assert_allclose(together[h].points, alone.points, atol=1e-9)
         np.testing.assert_array_equal(together[h].relaxed, alone.relaxed)
+
+
+def _candidate(end_x: float, score: float, screen: float) -> Candidate:
+    """A fitted straight 4 m walk from the origin towards (end_x, 0) with its scores."""
+    points = np.column_stack([np.linspace(0.0, end_x, 5), np.zeros(5)])
+    empty = np.zeros(0)
+    fit = TrackFit(points, score, empty, empty, empty, np.zeros(0, dtype=np.int64))
+    return Candidate(0.0, 1.0, 0.0, screen, fit, score)
+
+
+def test_a_rival_that_only_its_rigid_track_held_back_makes_the_fit_ambiguous() -> None:
+    p = TrackSearchParams()  # margin 1, screening share 0.1
+    best = _candidate(4.0, score=2.0, screen=10.0)  # bent 1.0
+    near_twin = _candidate(4.5, score=2.1, screen=0.0)  # not apart: never the rival
+    # apart, 3 behind on score, but bent onto the plan it cost 1.5: within the margin
+    bent_rival = _candidate(-4.0, score=5.0, screen=35.0)
+    assert rival_of(best, [near_twin, bent_rival], p) == (bent_rival, True)
+    # bent it cost 2.5: a clear runner-up, not a tie
+    clear = _candidate(-4.0, score=5.0, screen=25.0)
+    assert rival_of(best, [near_twin, clear], p) == (clear, False)
+    # within the margin on score alone
+    close = _candidate(-4.0, score=2.5, screen=0.0)
+    assert rival_of(best, [close], p) == (close, True)
+    assert rival_of(best, [near_twin], p) == (None, False)
