@@ -101,6 +101,7 @@ class LocalServer:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
+                self.log.close()
                 raise RuntimeError(f"locus serve exited with {self.process.returncode}")
             try:
                 if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
@@ -108,7 +109,9 @@ class LocalServer:
             except httpx.HTTPError:
                 pass
             time.sleep(0.2)
-        raise RuntimeError("locus serve did not become ready")
+        # no __exit__ follows a failed __enter__: stop the server here
+        self.__exit__()
+        raise RuntimeError(f"locus serve did not become ready in {STARTUP_TIMEOUT_S:.0f} s")
 
     def __exit__(self, *exc: object) -> None:
         self.process.terminate()
