@@ -13,7 +13,9 @@ through the API (``built_site``); every joined walk then goes through a
 worker's device session on that build (``replay_stages``), the path the
 server's workers run. The latency of a stage is the time from the change
 until its positions are on the new floor for good (the first position after
-which none is on another floor); a change never followed counts apart.
+which none is on another floor); a change never followed counts apart. The
+positions before the change give each stage's share on a wrong floor while
+the walker stays on one (every held-out walk is a first walk once).
 
 Run ``locus eval ilc-floor-change [--validation-fraction 0.2] [--limit N]``.
 """
@@ -118,12 +120,14 @@ def floor_pairs(walks: Sequence[Walk], limit: int) -> list[tuple[Walk, Walk]]:
 
 @dataclass(frozen=True)
 class FloorChanges:
-    """Per stage, each joined walk's latency (s; NaN where the change was never followed)."""
+    """Per stage: each joined walk's latency (s; NaN where the change was never followed),
+    and the positions before the change on a wrong floor, of all before it."""
 
     latency: dict[str, np.ndarray]
+    wrong_before: dict[str, tuple[int, int]]
 
-    def rows(self) -> list[tuple[str, int, float, float, float, int]]:
-        """Return (stage, walks, p50, p90, max, never followed) per stage."""
+    def rows(self) -> list[tuple[str, int, float, float, float, int, float]]:
+        """Return (stage, walks, p50, p90, max, never followed, % wrong before) per stage."""
         out = []
         for name, lat in self.latency.items():
             ok = lat[np.isfinite(lat)]
@@ -132,7 +136,9 @@ class FloorChanges:
                 if ok.size
                 else (np.nan,) * 3
             )
-            out.append((name, int(lat.size), *q, int(np.isnan(lat).sum())))
+            wrong, total = self.wrong_before[name]
+            share = 100.0 * wrong / total if total else np.nan
+            out.append((name, int(lat.size), *q, int(np.isnan(lat).sum()), share))
         return out
 
 
@@ -147,6 +153,8 @@ def measure_floor_changes(
 ) -> FloorChanges:
     """Replay every joined pair through a device session and time its floor change."""
     latency: dict[str, list[float]] = {name: [] for name in STAGES_TIMED}
+    wrong = dict.fromkeys(STAGES_TIMED, 0)
+    before = dict.fromkeys(STAGES_TIMED, 0)
     for first, second in pairs:
         walk = joined_walk(first, second)
         run = replay_stages(
@@ -160,9 +168,16 @@ def measure_floor_changes(
         )
         change_t = int(first.waypoints[-1, 0])
         for name in STAGES_TIMED:
-            got = settle_latency(run.tracks[walk.walk_id][name], change_t, floors.index(walk.floor))
+            track = run.tracks[walk.walk_id][name]
+            got = settle_latency(track, change_t, floors.index(walk.floor))
             latency[name].append(np.nan if got is None else got)
-    return FloorChanges({k: np.array(v, dtype=float) for k, v in latency.items()})
+            first_floor = [e.floor for e in track if e.t <= change_t]
+            before[name] += len(first_floor)
+            wrong[name] += sum(f != floors.index(first.floor) for f in first_floor)
+    return FloorChanges(
+        {k: np.array(v, dtype=float) for k, v in latency.items()},
+        {k: (wrong[k], before[k]) for k in STAGES_TIMED},
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -183,9 +198,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         changes = measure_floor_changes(
             engines, SITE_ID, pairs, floors, wifi_times=args.wifi_times, settings=settings
         )
-    print(f"{'stage':<26} {'pairs':>5} {'p50 s':>6} {'p90 s':>6} {'max s':>6} {'never':>5}")
-    for name, n, p50, p90, top, never in changes.rows():
-        print(f"{name:<26} {n:>5} {p50:>6.1f} {p90:>6.1f} {top:>6.1f} {never:>5}")
+    print("latency: seconds from the change until the positions stay on the new floor;")
+    print("wrong before: positions on a wrong floor before the change (the first walk's)")
+    header = f"{'stage':<26} {'pairs':>5} {'p50 s':>6} {'p90 s':>6} {'max s':>6} {'never':>5}"
+    print(header + f" {'wrong before':>12}")
+    for name, n, p50, p90, top, never, share in changes.rows():
+        print(f"{name:<26} {n:>5} {p50:>6.1f} {p90:>6.1f} {top:>6.1f} {never:>5} {share:>11.2f}%")
 
 
 if __name__ == "__main__":
