@@ -21,7 +21,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app import demo  # noqa: E402
-from bench.load import ADMIN, Tally, _children, _own_server, _rss_mb, start_devices  # noqa: E402
+from bench.load import (  # noqa: E402
+    ADMIN,
+    Tally,
+    _children,
+    _own_server,
+    _rss_mb,
+    _until_built,
+    start_devices,
+)
 
 
 async def _soak(
@@ -66,6 +74,7 @@ def main() -> None:
     args = parser.parse_args()
     with _own_server(args.port, args.workers, "memory") as (url, pid):
         demo.install(url, ADMIN)
+        asyncio.run(_until_built(url, ADMIN))
         pids = [pid, *_children(pid)]
         series = asyncio.run(_soak(url, args.devices, args.minutes * 60, args.every, pids))
     t = np.array([r[0] for r in series])

@@ -22,7 +22,6 @@ import itertools
 import json
 from typing import Any, TypeVar
 
-import numpy as np
 from pydantic import BaseModel, ValidationError
 from pydantic_core import ErrorDetails, PydanticCustomError
 
@@ -170,17 +169,23 @@ def body_indices(kind: str, count: int, earlier: list[Drop]) -> list[int]:
     return list(itertools.islice((i for i in itertools.count() if i not in gone), count))
 
 
-def _median(times: np.ndarray) -> float:
-    """Return the lower median: a time of the body itself, so one sample at least is near it."""
-    return float(np.partition(times, (times.size - 1) // 2)[(times.size - 1) // 2])
+def _median(times: list[float]) -> float:
+    """Return the lower median: a time of the body itself, so one sample at least is near it.
+
+    Plain Python: a body holds tens of times, where a numpy call costs more than the sort.
+    """
+    ordered = sorted(times)
+    return float(ordered[(len(ordered) - 1) // 2])
 
 
-def check_time_units(times: np.ndarray) -> None:
+def check_time_units(times: list[float]) -> None:
     """Raise Invalid when the median of ``times`` reads as another unit than milliseconds
     since the epoch (a time from 2000 to 5138 in that unit)."""
-    if times.size == 0:
-        return
-    median = _median(times)
+    if times:
+        _check_unit(_median(times))
+
+
+def _check_unit(median: float) -> None:
     unit = unit_of(median)
     if unit is not None:
         message = (
@@ -194,14 +199,14 @@ def check_time_units(times: np.ndarray) -> None:
         )
 
 
-def _raw_times(data: Any) -> np.ndarray:
+def _raw_times(data: Any) -> list[float]:
     """Return every number given as ``t`` in the lists of a JSON body (up to nanoseconds in
     the year 5138: beyond, a float would not hold it)."""
     lists = data.values() if isinstance(data, dict) else ()
     items = (i for v in lists if isinstance(v, list) for i in v if isinstance(i, dict))
     times = (i.get("t") for i in items)
     numbers = (t for t in times if isinstance(t, int | float) and not isinstance(t, bool))
-    return np.array([t for t in numbers if abs(t) < MAX_T_MS * 1e6], dtype=float)
+    return [float(t) for t in numbers if abs(t) < MAX_T_MS * 1e6]
 
 
 def _duration(ms: float) -> str:
@@ -234,18 +239,19 @@ def screen_times(
     Raise Invalid when the times are in another unit, or an item of ``anchors`` is that far.
     ``earlier`` are the drops before, for the samples' body indices.
     """
-    times = {k: np.fromiter((s.t for s in getattr(body, k)), np.int64) for k in (*anchors, *kinds)}
-    every = np.concatenate(list(times.values()))
-    check_time_units(every)
-    if every.size == 0:
+    times = {k: [s.t for s in getattr(body, k)] for k in (*anchors, *kinds)}
+    every = [t for ts in times.values() for t in ts]
+    if not every:
         return body, []
     median = _median(every)
-    far = {k: np.flatnonzero(np.abs(t - median) > max_offset_ms) for k, t in times.items()}
+    _check_unit(median)
+    far = {
+        k: [i for i, t in enumerate(ts) if abs(t - median) > max_offset_ms]
+        for k, ts in times.items()
+    }
     for kind in anchors:
-        if far[kind].size:
-            offsets = {
-                int(i): _offset(int(times[kind][i]), median, max_offset_ms) for i in far[kind]
-            }
+        if far[kind]:
+            offsets = {i: _offset(times[kind][i], median, max_offset_ms) for i in far[kind]}
             first = min(offsets)
             raise Invalid(
                 f"{kind}[{first}]: {offsets[first]}",
@@ -257,14 +263,13 @@ def screen_times(
             )
     update: dict[str, list[Any]] = {}
     drops: list[Drop] = []
-    for kind in (k for k in kinds if far[k].size):
-        index = body_indices(kind, times[kind].size, earlier)
+    for kind in (k for k in kinds if far[k]):
+        index = body_indices(kind, len(times[kind]), earlier)
         for i in far[kind]:
-            reason = _offset(int(times[kind][i]), median, max_offset_ms)
+            reason = _offset(times[kind][i], median, max_offset_ms)
             drops.append(_drop(kind, index[i], "t", ("time_outlier", reason), "sample"))
-        keep = np.ones(times[kind].size, dtype=bool)
-        keep[far[kind]] = False
-        update[kind] = list(itertools.compress(getattr(body, kind), keep))
+        gone = set(far[kind])
+        update[kind] = [s for i, s in enumerate(getattr(body, kind)) if i not in gone]
     return (body.model_copy(update=update) if update else body), drops
 
 

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cache
 
 from sqlalchemy import case, func, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
+from sqlalchemy.sql.expression import Executable
 
 from app.core.identity import DeviceKey
 from app.devices.models import Device
@@ -18,17 +20,23 @@ def touch_devices(*, db: Session, heard: Sequence[tuple[DeviceKey, int]], now: i
     if not heard:
         return
     rows = [{"site_id": s, "device_id": d, "last_seen": now, "last_t": t} for (s, d), t in heard]
-    dialect = postgresql if db.get_bind().dialect.name == "postgresql" else sqlite
-    statement = dialect.insert(Device).values(rows)
+    db.execute(_upsert(db.get_bind().dialect.name), rows)
+
+
+@cache
+def _upsert(dialect_name: str) -> Executable:
+    """Return the device upsert as one statement for any number of rows: compiled once and
+    run with the rows as parameters, where a VALUES list of the round's length is compiled
+    again every round."""
+    dialect = postgresql if dialect_name == "postgresql" else sqlite
+    statement = dialect.insert(Device)
     newer = statement.excluded.last_t > Device.last_t
-    db.execute(
-        statement.on_conflict_do_update(
-            index_elements=[Device.site_id, Device.device_id],
-            set_={
-                "last_seen": statement.excluded.last_seen,
-                "last_t": case((newer, statement.excluded.last_t), else_=Device.last_t),
-            },
-        )
+    return statement.on_conflict_do_update(
+        index_elements=[Device.site_id, Device.device_id],
+        set_={
+            "last_seen": statement.excluded.last_seen,
+            "last_t": case((newer, statement.excluded.last_t), else_=Device.last_t),
+        },
     )
 
 

@@ -8,7 +8,7 @@ key scoped to one site, ``?site_id=``, or an id that only one site has).
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, WebSocket, WebSocketDisconnect
 from sqlalchemy.orm import Session
@@ -205,7 +205,10 @@ async def position_stream(
                 if ended in done:
                     await websocket.close(code=1008, reason="this API key was revoked")
                 break
-            await websocket.send_json(getter.result())
+            # send every message queued by now: waiting for each one on its own takes
+            # several turns of an event loop that is busy with ingest
+            for message in _queued(sub.queue, getter.result()):
+                await websocket.send_json(message)
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
@@ -228,6 +231,14 @@ def _stream_refusal(
     if site_id is None and (floor_id is not None or device_id is not None):
         return "site_id is required with floor_id or device_id: those ids are per site"
     return None
+
+
+def _queued(queue: asyncio.Queue[dict[str, Any]], first: dict[str, Any]) -> list[dict[str, Any]]:
+    """Return ``first`` and every message waiting behind it, taking them off the queue."""
+    messages = [first]
+    while not queue.empty():
+        messages.append(queue.get_nowait())
+    return messages
 
 
 async def _wait_closed(websocket: WebSocket) -> None:
