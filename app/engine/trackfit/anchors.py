@@ -100,6 +100,31 @@ class AnchorCosts:
         return self.cost(np.arange(len(self))[None, :], xy, weight, cap).sum(axis=1)
 
 
+def mixture_deficit(
+    x: np.ndarray, y: np.ndarray, centres: np.ndarray, weight: np.ndarray, sigma: float
+) -> np.ndarray:
+    """Return a Gaussian mixture's negative log-density over a grid, relative to its minimum.
+
+    ``x`` (nx,) and ``y`` (ny,) are the cell centres, ``centres`` (k, 2) and ``weight`` (k,)
+    the components; the result is (ny, nx). One component's grid is held at a time.
+    """
+
+    def q(k: int) -> np.ndarray:
+        # q_k = |x - c_k|² / 2σ²
+        dy2 = (y[:, None] - centres[k, 1]) ** 2
+        return (dy2 + (x[None, :] - centres[k, 0]) ** 2) / (2 * sigma**2)
+
+    low = q(0)
+    for k in range(1, len(weight)):
+        np.minimum(low, q(k), out=low)
+    # -log Σ_k w_k exp(-q_k) = low - log Σ_k w_k exp(low - q_k)
+    total = np.zeros_like(low)
+    for k, w in enumerate(weight):
+        total += w * np.exp(low - q(k))
+    nll = low - np.log(total)
+    return nll - nll.min()
+
+
 def wifi_anchor_costs(
     radio_map: RadioMap, refs: ReferenceScans, scans: Sequence[WifiScan], sigma: float
 ) -> AnchorCosts:
@@ -114,9 +139,9 @@ def wifi_anchor_costs(
     radio map's grid.
     """
     ny, nx = radio_map.shape
-    xy_cells = np.asarray(radio_map.origin, dtype=float) + (
-        np.stack(np.meshgrid(np.arange(nx), np.arange(ny)), axis=-1) + 0.5
-    ) * float(radio_map.cell)
+    # cell centres: x by column, y by row
+    x = radio_map.origin[0] + (np.arange(nx) + 0.5) * radio_map.cell
+    y = radio_map.origin[1] + (np.arange(ny) + 0.5) * radio_map.cell
     deficit = np.empty((len(scans), ny, nx), dtype=np.float32)
     for a, scan in enumerate(scans):
         tx, first = np.unique(np.asarray(scan.tx, dtype=np.int64), return_index=True)
@@ -125,11 +150,7 @@ def wifi_anchor_costs(
             deficit[a] = 0.0
             continue
         near, weight = refs.neighbours(d, slice(None))
-        # -log Σ_k w_k exp(-|x - x_k|² / 2σ²), relative to its minimum
-        sq = ((xy_cells[:, :, None, :] - near[None, None, :, :]) ** 2).sum(-1) / (2 * sigma**2)
-        low = sq.min(axis=-1)
-        nll = low - np.log((weight * np.exp(-(sq - low[..., None]))).sum(-1))
-        deficit[a] = nll - nll.min()
+        deficit[a] = mixture_deficit(x, y, near, weight, sigma)
     return AnchorCosts(
         point=np.array([s.point for s in scans], dtype=np.int64),
         origin=np.asarray(radio_map.origin, dtype=float),
