@@ -118,11 +118,15 @@ def floor_pairs(walks: Sequence[Walk], limit: int) -> list[tuple[Walk, Walk]]:
     return pairs[:limit]
 
 
-def _quantiles(values: np.ndarray) -> tuple[float, float, float]:
+Quantiles = tuple[float, float, float]
+"""Median, 90th percentile and maximum."""
+
+
+def _quantiles(values: np.ndarray) -> Quantiles:
     """Return median, 90th percentile and maximum of the finite values (NaN for none)."""
     ok = values[np.isfinite(values)]
     if not ok.size:
-        return (np.nan,) * 3
+        return np.nan, np.nan, np.nan
     return float(np.median(ok)), float(np.percentile(ok, 90)), float(ok.max())
 
 
@@ -136,7 +140,7 @@ class FloorChanges:
     after_scan: dict[str, np.ndarray]
     wrong_before: dict[str, tuple[int, int]]
 
-    def rows(self) -> list[tuple[str, int, tuple[float, ...], tuple[float, ...], int, float]]:
+    def rows(self) -> list[tuple[str, int, Quantiles, Quantiles, int, float]]:
         """Return per stage: name, walks, (p50, p90, max) from the change, the same from the
         first scan, changes never followed, % on a wrong floor before the change."""
         out = []
