@@ -6,7 +6,8 @@ time to start where the first ends, as if the walker had stepped off an
 escalator at the second walk's start. This is harsher than a real change (no
 gradual fade of the old floor's access points on the way, no barometer: ILC
 recorded none), so the latencies are an upper bound of what a walker sees.
-Each walk is paired with the next held-out walk in id order on another floor.
+Each walk is paired with the next held-out walk in id order on another floor
+that lasts long enough to hear it (``MIN_SECOND_S``).
 
 A fresh server is surveyed with the training walks and builds its radio map
 through the API (``built_site``); every joined walk then goes through a
@@ -107,12 +108,26 @@ def settle_latency(track: Sequence[Estimate], change_t: int, floor: int) -> floa
     return (settled - change_t) / 1000.0
 
 
+MIN_SECOND_S = 30.0
+"""Shortest second walk of a pair (s between its first and last waypoints): a walk of a few
+seconds may end before the phone has scanned the new floor at all."""
+
+
 def floor_pairs(walks: Sequence[Walk], limit: int) -> list[tuple[Walk, Walk]]:
-    """Pair each walk (in id order) with the next one on another floor, at most ``limit``."""
+    """Pair each walk (in id order) with the next one on another floor that lasts at least
+    ``MIN_SECOND_S``; at most ``limit`` pairs."""
     ordered = sorted(walks, key=lambda w: w.walk_id)
     pairs = []
     for i, first in enumerate(ordered):
-        nxt = next((w for w in ordered[i + 1 :] + ordered[:i] if w.floor != first.floor), None)
+        nxt = next(
+            (
+                w
+                for w in ordered[i + 1 :] + ordered[:i]
+                if w.floor != first.floor
+                and (w.waypoints[-1, 0] - w.waypoints[0, 0]) / 1000.0 >= MIN_SECOND_S
+            ),
+            None,
+        )
         if nxt is not None:
             pairs.append((first, nxt))
     return pairs[:limit]

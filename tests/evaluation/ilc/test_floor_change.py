@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +75,13 @@ def test_latency_runs_until_the_last_position_off_the_new_floor() -> None:
     assert settle_latency(_track([1500, 2500], [1, 0]), 1000, 1) is None
 
 
-def test_each_walk_is_paired_with_the_next_on_another_floor() -> None:
-    walks = [_walk(w, f, 0) for w, f in (("a", "F1"), ("b", "F1"), ("c", "F2"))]
+def test_each_walk_is_paired_with_the_next_long_enough_on_another_floor() -> None:
+    walks = [_walk(w, f, 0) for w, f in (("a", "F1"), ("b", "F1"), ("c", "F2"), ("d", "F2"))]
+    # every walk lasts 10 s, too short to hear its floor, but d lasts 40 s
+    walks[3] = replace(walks[3], waypoints=np.array([[0, 1.0, 1.0], [40_000, 11.0, 1.0]]))
     pairs = [(x.walk_id, y.walk_id) for x, y in floor_pairs(walks, limit=10)]
-    assert pairs == [("a", "c"), ("b", "c"), ("c", "a")]
+    assert pairs == [("a", "d"), ("b", "d")]
+    walks[0] = replace(walks[0], waypoints=np.array([[0, 1.0, 1.0], [60_000, 11.0, 1.0]]))
+    pairs = [(x.walk_id, y.walk_id) for x, y in floor_pairs(walks, limit=10)]
+    assert pairs == [("a", "d"), ("b", "d"), ("c", "a"), ("d", "a")]
     assert len(floor_pairs(walks, limit=2)) == 2
