@@ -229,19 +229,11 @@ def simulated_track(waypoints: np.ndarray, errors: SimulatedErrors, seed: int) -
     return RawTrack(t=t.astype(np.int64), xy=xy)
 
 
-@dataclass(frozen=True)
-class TimedScan:
-    """One of the walk's WiFi scans kept as an anchor: the raw step it ends at, its readings."""
-
-    step: int
-    tx: np.ndarray
-    rssi: np.ndarray
-
-
 def anchor_scans(
     site: SiteRecordings, walk: Walk, step_t: np.ndarray, every_s: float
-) -> list[TimedScan]:
-    """Return one of the walk's scans every ``every_s``, each at the raw step nearest in time.
+) -> list[WifiScan]:
+    """Return one of the walk's scans every ``every_s``, each at the raw step nearest in time
+    (its ``point`` is that step's index).
 
     The k-th anchor is the first scan completed at least k·every_s after the
     start (scans before the last step only). A device ends a segment where it
@@ -249,7 +241,7 @@ def anchor_scans(
     """
     readings = site.readings(walk)
     scans = group_scans(readings.t, readings.tx, ScanParams())
-    out: list[TimedScan] = []
+    out: list[WifiScan] = []
     target = step_t[0] + every_s * 1000.0
     for idx in scans:
         t_scan = float(readings.t[idx].max())
@@ -259,21 +251,21 @@ def anchor_scans(
             continue
         step = int(np.argmin(np.abs(step_t - t_scan)))
         if step > 0:
-            out.append(TimedScan(step, readings.tx[idx], readings.rssi[idx]))
+            out.append(WifiScan(step, readings.tx[idx], readings.rssi[idx]))
         target += every_s * 1000.0
     return out
 
 
-def track_vertices(raw: RawTrack, links: str, scans: list[TimedScan]) -> np.ndarray:
+def track_vertices(raw: RawTrack, links: str, scans: list[WifiScan]) -> np.ndarray:
     """Return the raw steps that end links: every step, or the merged track's corners, plus
     the step of every anchor scan (the device ends a segment where it scans)."""
     corners = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
-    return np.union1d(corners, [s.step for s in scans]).astype(np.int64)
+    return np.union1d(corners, [s.point for s in scans]).astype(np.int64)
 
 
-def link_scans(scans: list[TimedScan], vertex: np.ndarray) -> list[WifiScan]:
-    """Return the anchor scans on the link ends: point k is ``vertex[k]``."""
-    return [WifiScan(int(np.searchsorted(vertex, s.step)), s.tx, s.rssi) for s in scans]
+def link_scans(scans: list[WifiScan], vertex: np.ndarray) -> list[WifiScan]:
+    """Return the anchor scans renumbered from raw steps to link ends (point k is ``vertex[k]``)."""
+    return [replace(s, point=int(np.searchsorted(vertex, s.point))) for s in scans]
 
 
 @dataclass(frozen=True)
