@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from typing import TypeVar
 
 import numpy as np
 
 from app.core.config import Settings
-from app.datasets.ilc import Walk
+from app.datasets.ilc import BeaconScan, Walk, WifiScan
 from app.engine.samples import Estimate
 from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages
 from app.evaluation.ilc.server import SITE_ID, add_site_arguments, built_site, split_site
@@ -46,6 +47,27 @@ def _shifted(rows: np.ndarray, dt: int) -> np.ndarray:
     return out
 
 
+R = TypeVar("R", WifiScan, BeaconScan)
+
+
+def _joined_readings(a: R, b: R, end: int, dt: int, times: tuple[str, ...]) -> R:
+    """Return ``a``'s readings up to ``end`` then ``b``'s after it, ``b``'s ``times`` fields
+    moved by ``dt``; every field is an array aligned with ``t``."""
+    keep_a, keep_b = a.t <= end, b.t + dt > end
+
+    def field_of_b(name: str) -> np.ndarray:
+        values = getattr(b, name)[keep_b]
+        return values + dt if name in times else values
+
+    return replace(
+        a,
+        **{
+            f.name: np.concatenate([getattr(a, f.name)[keep_a], field_of_b(f.name)])
+            for f in fields(a)
+        },
+    )
+
+
 def joined_walk(first: Walk, second: Walk) -> Walk:
     """Return ``first`` then ``second``, shifted to start at ``first``'s last waypoint.
 
@@ -59,27 +81,6 @@ def joined_walk(first: Walk, second: Walk) -> Walk:
         b = _shifted(b, dt)
         return np.vstack([a[a[:, 0] <= end], b[b[:, 0] > end]])
 
-    a_wifi, b_wifi = first.wifi, second.wifi
-    keep_a, keep_b = a_wifi.t <= end, second.wifi.t + dt > end
-    wifi = replace(
-        a_wifi,
-        **{
-            name: np.concatenate([getattr(a_wifi, name)[keep_a], getattr(b_wifi, name)[keep_b]])
-            for name in ("bssid", "rssi", "freq")
-        },
-        t=np.concatenate([a_wifi.t[keep_a], b_wifi.t[keep_b] + dt]),
-        last_seen=np.concatenate([a_wifi.last_seen[keep_a], b_wifi.last_seen[keep_b] + dt]),
-    )
-    a_ble, b_ble = first.beacons, second.beacons
-    on_a, on_b = a_ble.t <= end, b_ble.t + dt > end
-    beacons = replace(
-        a_ble,
-        **{
-            name: np.concatenate([getattr(a_ble, name)[on_a], getattr(b_ble, name)[on_b]])
-            for name in ("id", "rssi", "tx_power", "mac")
-        },
-        t=np.concatenate([a_ble.t[on_a], b_ble.t[on_b] + dt]),
-    )
     return replace(
         second,
         walk_id=f"{first.walk_id}-{second.walk_id}",
@@ -87,8 +88,8 @@ def joined_walk(first: Walk, second: Walk) -> Walk:
         gyro=rows(first.gyro, second.gyro),
         mag=rows(first.mag, second.mag),
         rot=rows(first.rot, second.rot),
-        wifi=wifi,
-        beacons=beacons,
+        wifi=_joined_readings(first.wifi, second.wifi, end, dt, ("t", "last_seen")),
+        beacons=_joined_readings(first.beacons, second.beacons, end, dt, ("t",)),
         waypoints=np.vstack([first.waypoints, _shifted(second.waypoints[1:], dt)]),
     )
 
