@@ -38,6 +38,11 @@ EMISSION_WEIGHT_CANDIDATES = (0.02, 0.03, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0
 HMM_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.35)
 """Emission weights (the floor weight the same) a build replays held-out walks with."""
 
+FIX_WEIGHT_CANDIDATES = (0.0, 10.0, 20.0)
+"""Weights of the per-scan k-NN fix in the HMM's emission a build replays held-out walks
+with: on a sparse survey the nearest survey scans can be far from the walker, and the fix
+then pulls the track the wrong way."""
+
 MAD_TO_STD = 1.4826
 """Scale of the median absolute deviation to a Gaussian standard deviation."""
 
@@ -70,6 +75,8 @@ class SiteTuning:
     radius_scale : float
         Factor on the HMM posterior's radius (below 1 where the spread alone
         held more than 68% of the replayed walks' errors).
+    fix_nats : float
+        Weight of the per-scan k-NN fix in the HMM's emission.
     """
 
     weinberg_k: float
@@ -81,6 +88,7 @@ class SiteTuning:
     accuracy_floor_m: float
     pdr_walks: int = 0
     radius_scale: float = 1.0
+    fix_nats: float = HmmParams().fix_nats
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -128,6 +136,7 @@ class SiteTuning:
             heading_std_deg=self.heading_std_deg,
             accuracy_floor_m=self.accuracy_floor_m,
             radius_scale=self.radius_scale,
+            fix_nats=self.fix_nats,
         )
 
     def wknn(self, base: WknnParams | None = None) -> WknnParams:
@@ -147,18 +156,31 @@ def heading_spread(walks: Sequence[WalkPdr], offset_deg: float) -> float | None:
 
 
 def one_standard_error_choice(scores: Mapping[float, Sequence[float]], default: float) -> float:
-    """Return the candidate nearest ``default`` within one standard error of the best.
+    """Return the candidate nearest ``default`` that is as good as the best, walk by walk.
 
-    Scores are lower-is-better, one per held-out walk. Held-out walks are few
-    and their errors vary widely, so the best mean is partly luck: a
-    candidate replaces the default only when it is better by more than that.
+    Scores are lower-is-better, one per held-out walk, the same walks in the
+    same order for every candidate. A candidate is as good as the best when
+    its mean excess over the best's, walk by walk, is within one standard
+    error of that excess: comparing on the same walks sets aside how hard each
+    walk is (a walk the survey covers poorly is poor under every candidate),
+    and what is left is whether the constant helps more than by luck. Nearest
+    in ratio (0, meaning off, is farthest from any other value).
     """
-    means = {c: float(np.mean(v)) for c, v in scores.items() if len(v)}
-    best = min(means, key=lambda c: means[c])
-    n = len(scores[best])
-    se = float(np.std(scores[best], ddof=1) / np.sqrt(n)) if n > 1 else 0.0
-    near = [c for c in means if means[c] <= means[best] + se]
-    return min(near, key=lambda c: (abs(np.log(c / default)), c))
+    values = {c: np.asarray(v, dtype=float) for c, v in scores.items() if len(v)}
+    best = min(values, key=lambda c: float(np.mean(values[c])))
+
+    def as_good(c: float) -> bool:
+        excess = values[c] - values[best]
+        n = excess.size
+        se = float(np.std(excess, ddof=1) / np.sqrt(n)) if n > 1 else 0.0
+        return float(np.mean(excess)) <= se
+
+    def distance(c: float) -> float:
+        if c == default:
+            return 0.0
+        return abs(float(np.log(c / default))) if c > 0 and default > 0 else float("inf")
+
+    return min((c for c in values if as_good(c)), key=lambda c: (distance(c), c))
 
 
 def tune_site(

@@ -84,12 +84,14 @@ class SiteTuningRead(BaseModel):
     accuracy_floor_m: float
     pdr_walks: int
     radius_scale: float = 1.0
+    fix_nats: float = 10.0
 
 
 class TuningScores(BaseModel):
     """The held-out figure of every candidate the build chose among."""
 
     hmm_walk_error_m_by_weight: dict[str, float | None] = {}
+    hmm_walk_error_m_by_fix_weight: dict[str, float | None] = {}
     hmm_walks: int = 0
     wknn_mean_error_m_by_k: dict[str, float | None]
     emission_log_score_by_weight: dict[str, float | None]

@@ -39,6 +39,7 @@ from app.engine.radiomap import (
 from app.engine.samples import ImuSamples, RssiReadings
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
+    FIX_WEIGHT_CANDIDATES,
     HMM_WEIGHT_CANDIDATES,
     WKNN_K_CANDIDATES,
     SiteTuning,
@@ -176,7 +177,7 @@ def compute_build(
     *,
     folds: int,
     tune: bool = True,
-    hmm_walks: int = 6,
+    hmm_walks: int = 20,
     progress: Progress | None = None,
 ) -> BuildResult:
     """Build every surveyed floor's radio map, calibrate every heard transmitter, estimate
@@ -242,8 +243,11 @@ def compute_build(
         else None,
         progress=lambda x: report(0.65 + 0.3 * x),
     )
-    tuning = tune_site(measured, validation, replays.choose(HmmParams().emission_weight))
-    radius = replays.radius_calibration(tuning.emission_weight)
+    chosen = replays.choose()
+    tuning = tune_site(measured, validation, chosen[0] if chosen else None)
+    if chosen is not None:
+        tuning = replace(tuning, fix_nats=chosen[1])
+    radius = replays.radius_calibration(tuning.emission_weight, tuning.fix_nats)
     if radius is not None:
         tuning = replace(tuning, radius_scale=radius[0], accuracy_floor_m=radius[1])
     if not tune:
@@ -268,7 +272,7 @@ def compute_build(
             "p90_error_m": _r(float(np.percentile(held.error_m, 90))),
             "floor_error_rate": _r(float(1.0 - np.mean(held.floor_ok)), 4),
         }
-        replayed = replays.mean_errors().get(tuning.emission_weight)
+        replayed = replays.mean_error(tuning.emission_weight, tuning.fix_nats)
         if replayed is not None:
             # what the server's tracker measured on walks the maps were built without
             accuracy["tracker"] = {
@@ -306,12 +310,17 @@ def compute_build(
 
 
 class HmmReplays:
-    """Held-out survey walks replayed through the HMM on each fold's maps, per candidate weight.
+    """Held-out survey walks replayed through the HMM on each fold's maps, per candidate.
 
     At most ``per_fold`` walks of each fold (those with inertial samples and
     two waypoints, evenly spread) are replayed, with the PDR constants and
     heading noise ``base`` learned from the surveys and no accuracy floor, so
-    the replays also calibrate the radius.
+    the replays also calibrate the radius. The candidates step away from the
+    defaults one constant at a time (a fold's maps are too large to keep for
+    a second round): every emission weight with the default k-NN fix weight,
+    and every fix weight with the default emission weight. A fix weight other
+    than the default is chosen only where the emission weight stays at its
+    default, so the chosen pair was always replayed.
     """
 
     def __init__(
@@ -327,17 +336,23 @@ class HmmReplays:
                     self.walks[w] = HeldWalk(rssi, s.imu, s.waypoints, floor)
         self.per_fold = per_fold
         self.pdr = base.pdr()
+        default = HmmParams()
+        self.default = (default.emission_weight, default.fix_nats)
+        pairs = [(w, default.fix_nats) for w in HMM_WEIGHT_CANDIDATES]
+        pairs += [(default.emission_weight, f) for f in FIX_WEIGHT_CANDIDATES]
+        self.pairs = list(dict.fromkeys(pairs))
         self.candidates = [
             replace(
                 base.hmm(),
                 emission_weight=w,
                 floor_weight=w,
+                fix_nats=f,
                 accuracy_floor_m=0.0,
                 radius_scale=1.0,
             )
-            for w in HMM_WEIGHT_CANDIDATES
+            for w, f in self.pairs
         ]
-        self.results: list[list[WalkResult]] = [[] for _ in self.candidates]
+        self.results: dict[tuple[float, float], list[WalkResult]] = {k: [] for k in self.pairs}
 
     def on_fold(
         self, maps: tuple[RadioMap, ...], test: np.ndarray, walk_of_scan: np.ndarray
@@ -347,44 +362,61 @@ class HmmReplays:
         if len(held) > self.per_fold:
             held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
         walks = [self.walks[w] for w in held]
-        for mine, new in zip(
-            self.results, candidate_results(maps, walks, self.candidates, self.pdr), strict=True
+        for key, new in zip(
+            self.pairs, candidate_results(maps, walks, self.candidates, self.pdr), strict=True
         ):
-            mine += new
+            self.results[key] += new
 
     @property
     def scored(self) -> int:
         """Return the walks replayed (per candidate)."""
-        return len(self.results[0]) if self.results else 0
+        return len(self.results[self.pairs[0]]) if self.pairs else 0
 
-    def mean_errors(self) -> dict[float, float]:
-        """Return the mean walk score (m) per candidate weight; empty when none was replayed."""
+    def _scores(
+        self, weight: float | None = None, fix: float | None = None
+    ) -> dict[float, list[float]]:
+        """Return each walk's score per candidate value of the constant left free."""
+        free = [(w, f) for w, f in self.pairs if (f == fix if weight is None else w == weight)]
+        return {
+            (w if weight is None else f): [r.score for r in self.results[(w, f)]] for w, f in free
+        }
+
+    def mean_errors(self) -> dict[str, dict[float, float]]:
+        """Return the mean walk score (m) of each emission weight (default fix weight) and of
+        each fix weight (default emission weight); empty when none was replayed."""
         if not self.scored:
             return {}
+        weight, fix = self.default
         return {
-            c.emission_weight: float(np.mean([r.score for r in results]))
-            for c, results in zip(self.candidates, self.results, strict=True)
+            "weight": {w: float(np.mean(v)) for w, v in self._scores(fix=fix).items()},
+            "fix": {f: float(np.mean(v)) for f, v in self._scores(weight=weight).items()},
         }
 
-    def choose(self, default: float) -> float | None:
-        """Return the weight chosen by the one-standard-error rule; None without replays."""
+    def choose(self) -> tuple[float, float] | None:
+        """Return the emission and fix weights chosen by the one-standard-error rule, the
+        fix weight only where the emission weight stays; None without replays."""
         if not self.scored:
             return None
-        scores = {
-            c.emission_weight: [r.score for r in results]
-            for c, results in zip(self.candidates, self.results, strict=True)
-        }
-        return one_standard_error_choice(scores, default)
+        weight, fix = self.default
+        chosen = one_standard_error_choice(self._scores(fix=fix), weight)
+        if chosen != weight:
+            return chosen, fix
+        return weight, one_standard_error_choice(self._scores(weight=weight), fix)
 
-    def radius_calibration(self, weight: float) -> tuple[float, float] | None:
+    def mean_error(self, weight: float, fix: float) -> float | None:
+        """Return the mean walk score (m) of one replayed candidate, None if not replayed."""
+        results = self.results.get((weight, fix))
+        return float(np.mean([r.score for r in results])) if results else None
+
+    def radius_calibration(self, weight: float, fix: float) -> tuple[float, float] | None:
         """Return the radius scale and floor (m) under which the radius holds 68% of the
         replays' errors; None without replays."""
-        for c, results in zip(self.candidates, self.results, strict=True):
-            if c.emission_weight == weight and results:
-                error = np.concatenate([r.error for r in results])
-                radius = np.concatenate([r.radius for r in results])
-                return calibrate_radius(error, radius, c.min_accuracy_m)
-        return None
+        results = self.results.get((weight, fix))
+        if not results:
+            return None
+        error = np.concatenate([r.error for r in results])
+        radius = np.concatenate([r.radius for r in results])
+        return calibrate_radius(error, radius, HmmParams().min_accuracy_m)
 
 
 def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
@@ -403,8 +435,10 @@ def _tuning_scores(
     """Return the held-out figure of every candidate the tuning chose among."""
     if validation is None:
         return None
+    errors = replays.mean_errors()
     return {
-        "hmm_walk_error_m_by_weight": {str(w): _r(e) for w, e in replays.mean_errors().items()},
+        "hmm_walk_error_m_by_weight": {str(w): _r(e) for w, e in errors.get("weight", {}).items()},
+        "hmm_walk_error_m_by_fix_weight": {str(f): _r(e) for f, e in errors.get("fix", {}).items()},
         "hmm_walks": replays.scored,
         "wknn_mean_error_m_by_k": {
             str(k): _r(float(np.mean(h.error_m))) for k, h in validation.by_k.items()
@@ -484,7 +518,7 @@ def build_site(
     raster_cell: float,
     folds: int,
     tune: bool = True,
-    hmm_walks: int = 6,
+    hmm_walks: int = 20,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Run a whole build (read, compute, store) and return the summary with its duration.

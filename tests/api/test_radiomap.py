@@ -380,12 +380,19 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     default = HmmParams().emission_weight
     assert by_w[tuning["emission_weight"]] <= by_w[default]
     assert tuning["floor_weight"] == tuning["emission_weight"]
+    # so does the k-NN fix's weight, moved only where the emission weight stayed
+    by_fix = {float(f): v for f, v in scores["hmm_walk_error_m_by_fix_weight"].items()}
+    default_fix = HmmParams().fix_nats
+    assert by_fix[tuning["fix_nats"]] <= by_fix[default_fix]
+    assert tuning["fix_nats"] == default_fix or tuning["emission_weight"] == default
     assert scores["emission_log_score_by_weight"] and scores["floor_log_score_by_weight"]
     assert summary["accuracy"]["k"] == tuning["wknn_k"]
     # beside the WKNN's, the accuracy says what the tracker measured on those replays
     tracker = summary["accuracy"]["tracker"]
     assert tracker["walks"] == scores["hmm_walks"]
-    assert tracker["mean_walk_error_m"] == by_w[tuning["emission_weight"]]
+    chosen = by_fix if tuning["emission_weight"] == default else by_w
+    key = "fix_nats" if tuning["emission_weight"] == default else "emission_weight"
+    assert tracker["mean_walk_error_m"] == chosen[tuning[key]]
     # the radius floor is calibrated on those replays: 0 or more, never the WKNN median's
     # stand-in when replays exist
     assert tuning["accuracy_floor_m"] >= 0.0

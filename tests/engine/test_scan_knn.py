@@ -1,4 +1,4 @@
-"""Per-scan k-NN against survey scans, and the HMM emission built on it.
+"""Per-scan k-NN against survey scans, and the HMM emission and radius built on it.
 
 A corridor 40 m long is surveyed every metre by a phone hearing path-loss
 transmitters; the scan k-NN must find scans from a second walk where they
@@ -13,7 +13,9 @@ import pytest
 
 from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.params import HmmParams
+from app.engine.hmm.tracker import HmmTracker
 from app.engine.radiomap import RadioMapParams, Survey, build_radio_map
+from app.engine.samples import Batch, Estimate, RssiReadings
 from app.engine.scan_knn import ReferenceScans, ScanKnnParams
 from app.radiomaps.codec import decode_map, encode_map
 
@@ -141,3 +143,65 @@ def test_the_distance_is_the_mean_difference_on_shared_transmitters_plus_the_uns
     # scan 0 shares both: (|35 - 40| + |30 - 30|) / 2, and all the signal is shared
     # scan 1 shares tx 1: |30 - 20|, shared (20 + 30) / (70 + 65) of the signal
     assert d == pytest.approx([2.5, 10.0 + 50.0 * (1.0 - 50.0 / 135.0) ** 2])
+
+
+def test_the_hmm_knn_fix_is_a_mixture_at_the_scans_neighbours_relative_to_its_peak(
+    survey: Survey,
+) -> None:
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1))
+    params = HmmParams(fix_nats=10.0, fix_sigma_m=4.0, fix_max_nats=5.0)
+    model = EmissionModel([m], params)
+    tx, rssi = _heard(25.0, np.random.default_rng(8))
+    near = model.scan_neighbours(0, tx, rssi)
+    assert near is not None
+    centres, weight = near
+    fix = model.fix_log_density(0, tx, rssi)
+    assert fix is not None and fix.shape == (m.n_points,)
+
+    def density(x: np.ndarray) -> np.ndarray:
+        d2 = np.sum((x[:, None] - centres[None]) ** 2, axis=2)
+        return np.exp(-0.5 * d2 / 4.0**2) @ weight
+
+    # w c ln(f(x) / max_i f(c_i)), floored c_max below the peak
+    peak = density(centres).max()
+    by_hand = np.maximum(np.log(density(m.xy) / peak), -5.0) * 0.2 * 10.0
+    assert fix == pytest.approx(by_hand, abs=1e-9)
+    # it peaks among the neighbours, near where the scan was made, and rules nothing out
+    assert abs(m.xy[int(np.argmax(fix)), 0] - 25.0) < 3.0
+    assert fix.min() == pytest.approx(-5.0 * 0.2 * 10.0)
+    # on a subset of points it gives the same values
+    some = np.array([0, 7, 30])
+    assert model.fix_log_density(0, tx, rssi, some) == pytest.approx(fix[some])
+    # switched off, or for a scan that shares nothing with the survey: none
+    off = EmissionModel([m], HmmParams(fix_nats=0.0))
+    assert off.fix_log_density(0, tx, rssi) is None
+    assert model.fix_log_density(0, np.array([TX_X.size + 3]), np.array([-60.0])) is None
+
+
+def test_the_hmm_radius_grows_with_the_scans_distance_to_the_nearest_survey_scan(
+    survey: Survey,
+) -> None:
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1))
+    rng = np.random.default_rng(9)
+    scans = [_heard(10.0 + 0.7 * k, rng) for k in range(6)]
+    model = EmissionModel([m], HmmParams())
+    assert model.references is not None
+    tx, rssi = scans[-1]
+    nearest = model.references.distances(tx, rssi).min()
+    assert model.best_match(0, tx, rssi) == pytest.approx(nearest)
+
+    def run(params: HmmParams) -> list[Estimate]:
+        tracker = HmmTracker(EmissionModel([m], params), params)
+        out = []
+        for k, (tx, rssi) in enumerate(scans):
+            t = np.full(tx.size, 1000 * k, dtype=np.int64)
+            out += tracker.process(Batch(rssi=RssiReadings(t, tx.astype(np.int32), rssi)))
+        return out
+
+    typical = run(HmmParams(min_accuracy_m=0.01, radius_match_db=6.0, radius_match_min_db=0.1))
+    half = run(HmmParams(min_accuracy_m=0.01, radius_match_db=3.0, radius_match_min_db=0.1))
+    assert [(e.x, e.y) for e in half] == [(e.x, e.y) for e in typical]
+    # the radius is the posterior's, times best match / typical match
+    assert [e.accuracy for e in half] == pytest.approx([2.0 * e.accuracy for e in typical])
+    # without survey scans the radius is the posterior's alone
+    assert model.best_match(0, np.array([TX_X.size + 3]), np.array([-60.0])) is None

@@ -89,10 +89,25 @@ def test_the_radius_calibration_makes_the_radius_hold_68_percent_of_the_errors()
 
 def test_a_candidate_replaces_the_default_only_when_better_by_more_than_luck() -> None:
     rng = np.random.default_rng(4)
-    noisy = {w: (10.0 + rng.normal(0.0, 5.0, 30)).tolist() for w in (0.05, 0.1, 0.2, 0.35)}
-    # a hair better somewhere, but well within the walks' spread: the default stays
-    noisy[0.1] = [v - 0.3 for v in noisy[0.2]]
+    # walks differ far more from each other than candidates do on the same walk
+    hardness = 10.0 + rng.normal(0.0, 5.0, 30)
+    noisy = {w: (hardness + rng.normal(0.0, 1.0, 30)).tolist() for w in (0.05, 0.1, 0.2, 0.35)}
+    # a hair better on average, but not walk by walk: the default stays
+    noisy[0.1] = (np.asarray(noisy[0.2]) - 0.1 + rng.normal(0.0, 1.0, 30)).tolist()
     assert one_standard_error_choice(noisy, 0.2) == 0.2
-    # clearly better: chosen
-    noisy[0.05] = [v - 6.0 for v in noisy[0.2]]
+    # better on the same walks by more than the walk-by-walk luck: chosen, even though
+    # the walks' own spread (5 m) dwarfs the gain
+    noisy[0.05] = (np.asarray(noisy[0.2]) - 1.0 + rng.normal(0.0, 0.3, 30)).tolist()
     assert one_standard_error_choice(noisy, 0.2) == 0.05
+
+
+def test_off_is_chosen_only_when_it_beats_every_nearer_candidate() -> None:
+    rng = np.random.default_rng(5)
+    hardness = 10.0 + rng.normal(0.0, 5.0, 40)
+    scores = {f: (hardness + rng.normal(0.0, 0.2, 40)).tolist() for f in (0.0, 10.0, 20.0)}
+    # all alike: the default
+    assert one_standard_error_choice(scores, 10.0) == 10.0
+    # the fix hurts on every walk: off
+    scores[10.0] = (np.asarray(scores[0.0]) + 0.8).tolist()
+    scores[20.0] = (np.asarray(scores[0.0]) + 1.5).tolist()
+    assert one_standard_error_choice(scores, 10.0) == 0.0

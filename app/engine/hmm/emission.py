@@ -204,6 +204,52 @@ class EmissionModel:
             return None
         return self.references.neighbours(d, self.ref_blocks[f])
 
+    def fix_log_density(
+        self, f: int, tx: np.ndarray, rssi: np.ndarray, points: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """Return the tempered log-density of the scan's k-NN fix at points of map ``f``.
+
+        The fix is a Gaussian mixture at the per-scan k-NN's neighbours (their
+        k-NN weights, spread ``fix_sigma_m``): where the pooled emission asks
+        how well the survey scans around a point match, this asks where the
+        best-matching scans anywhere on the floor are. Relative to the
+        mixture's peak (0 there, at most ``fix_max_nats`` below), times
+        ``fix_nats`` and the emission weight. None without survey scans or
+        when the scan shares nothing with the floor's.
+
+        Parameters
+        ----------
+        points : ndarray of int, optional
+            Point indices to evaluate (default every point of the map).
+        """
+        p = self.params
+        near = self.scan_neighbours(f, tx, rssi)
+        if near is None or p.fix_nats == 0.0:
+            return None
+        centres, weight = near
+        xy = self.xy[f] if points is None else self.xy[f][points]
+        # ln Σ_i w_i exp(-|x - c_i|² / 2σ²), relative to its largest value at a centre
+        d2 = np.sum((xy[:, None, :] - centres[None, :, :]) ** 2, axis=2)
+        density = np.exp(-0.5 * d2 / p.fix_sigma_m**2) @ weight
+        at_centres = (
+            np.exp(
+                -0.5 * np.sum((centres[:, None] - centres[None]) ** 2, axis=2) / p.fix_sigma_m**2
+            )
+            @ weight
+        )
+        log_rel = np.log(np.maximum(density, 1e-300)) - np.log(at_centres.max())
+        return p.emission_weight * p.fix_nats * np.maximum(log_rel, -p.fix_max_nats)
+
+    def best_match(self, f: int, tx: np.ndarray, rssi: np.ndarray) -> float | None:
+        """Return the scan's distance (dB) to the nearest survey scan of map ``f``.
+
+        None without survey scans or when the scan shares nothing with the floor's.
+        """
+        if self.references is None:
+            return None
+        d = self._distances(tx, rssi)[self.ref_blocks[f]]
+        return float(d.min()) if np.isfinite(d).any() else None
+
     def knn(self, f: int, tx: np.ndarray, rssi: np.ndarray, k: int) -> np.ndarray:
         """Return the weighted mean position (m) of the k nearest fingerprints on map ``f``.
 

@@ -65,6 +65,7 @@ class HmmTracker:
             self.odometry = np.zeros(2)
             self.cov = np.zeros((2, 2))
             self.fix_var = 0.0
+            self.match = 1.0
             self.t_scan = -1
             self.t_emit = -1
             self.t_imu = -1
@@ -94,6 +95,7 @@ class HmmTracker:
             "odometry": self.odometry.copy(),
             "cov": self.cov.copy(),
             "fix_var": self.fix_var,
+            "match": self.match,
             "t_scan": self.t_scan,
             "t_emit": self.t_emit,
             "t_imu": self.t_imu,
@@ -125,6 +127,7 @@ class HmmTracker:
         self.odometry = np.asarray(state.get("odometry", np.zeros(2)), dtype=float)
         self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
         self.fix_var = float(state.get("fix_var", 0.0))
+        self.match = float(state.get("match", 1.0))
         self.t_scan = int(state["t_scan"])
         self.t_emit = int(state["t_emit"])
         self.t_imu = int(state["t_imu"])
@@ -279,6 +282,7 @@ class HmmTracker:
         else:
             self._update(t, ll[self.map], tx, rssi)
         self.fix_var = self._fix_variance(tx, rssi)
+        self.match = self._match_factor(tx, rssi)
         self.t_scan = t
         out.append(self._estimate(t))
 
@@ -299,11 +303,27 @@ class HmmTracker:
         mean, _ = self._posterior()
         return spread2 + float(np.sum((mean - fix) ** 2))
 
+    def _match_factor(self, tx: np.ndarray, rssi: np.ndarray) -> float:
+        """Return the scan's best match on the tracked floor relative to a typical one.
+
+        A scan far in signal space from every survey scan of the floor was
+        heard where the survey is sparse or the radio has changed: its position
+        is less sure, however sharp the posterior. 1 without survey scans.
+        """
+        best = self.model.best_match(self.map, tx, rssi)
+        if best is None:
+            return 1.0
+        # m = max(d_min, d_floor) / d_ref
+        return max(best, self.params.radius_match_min_db) / self.params.radius_match_db
+
     def _start(self, f: int, tx: np.ndarray, rssi: np.ndarray, ll: np.ndarray) -> None:
         """(Re)start the position on map ``f``: k-NN prior times the scan's emission."""
         p, model = self.params, self.model
         x0 = model.knn(f, tx, rssi, p.k)
         xy = model.xy[f]
+        fix = model.fix_log_density(f, tx, rssi)
+        if fix is not None:
+            ll = ll + fix
         # ln p₀_j = -|x_j - x₀|² / 2σ₀² + w ln L_j
         logp = -0.5 * np.sum((xy - x0) ** 2, axis=1) / p.init_std_m**2 + ll
         self.map = f
@@ -328,13 +348,19 @@ class HmmTracker:
         prior[prior < p.transition_threshold] = 0.0
         self.d = np.zeros(2)
         self.cov = np.zeros((2, 2))
-        with np.errstate(divide="ignore"):
-            log_prior = np.log(prior)
-        predictive = _logsumexp(log_prior + ll) if prior.any() else -np.inf
+        support = np.flatnonzero(prior)
+        # w ln L_j on the support, with the k-NN fix where there is one
+        ll_support = ll[support]
+        fix = model.fix_log_density(self.map, tx, rssi, support)
+        if fix is not None:
+            ll_support = ll_support + fix
+        log_post = np.log(prior[support]) + ll_support
+        predictive = _logsumexp(log_post) if support.size else -np.inf
         if predictive < ll.max() - p.relocate_margin:
             self._start(self.map, tx, rssi, ll)
             return
-        self.prob = self._normalised(log_prior + ll)
+        self.prob = np.zeros_like(prior)
+        self.prob[support] = self._normalised(log_post)
         self.summary = None
 
     @staticmethod
@@ -367,9 +393,10 @@ class HmmTracker:
         mean, var = self._posterior()
         pos = mean + self.d
         # the radius's spread: the tempered posterior's, the steps' since the scan and the
-        # per-scan k-NN's disagreement with the posterior
+        # per-scan k-NN's disagreement with the posterior,
         var += float(np.trace(self.cov)) / 2.0 + self.fix_var
-        radius = max(p.min_accuracy_m, R68_SIGMAS_2D * np.sqrt(var))
+        # scaled by how well the last scan matched the survey
+        radius = max(p.min_accuracy_m, R68_SIGMAS_2D * np.sqrt(var) * self.match)
         # r' = max(r_min, sqrt((s r)² + f²)): the build's calibration of the radius
         accuracy = max(
             p.min_accuracy_m, float(np.hypot(p.radius_scale * radius, p.accuracy_floor_m))

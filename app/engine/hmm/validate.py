@@ -115,13 +115,17 @@ def candidate_results(
     candidates: Sequence[HmmParams],
     pdr: PdrParams,
 ) -> list[list[WalkResult]]:
-    """Return every replayed walk's result, per candidate."""
-    out: list[list[WalkResult]] = []
+    """Return every replayed walk's result, per candidate, the same walks for each.
+
+    A walk one candidate gave no estimate on is left out of all, so candidates
+    compare walk by walk.
+    """
+    out: list[list[WalkResult | None]] = []
     for params in candidates:
         model = EmissionModel(maps, params)
-        results = (replay_walk(model, params, pdr, walk) for walk in walks)
-        out.append([r for r in results if r is not None])
-    return out
+        out.append([replay_walk(model, params, pdr, walk) for walk in walks])
+    scored = [all(results[i] is not None for results in out) for i in range(len(walks))]
+    return [[r for r, ok in zip(results, scored, strict=True) if ok and r] for results in out]
 
 
 def calibrate_radius(

@@ -84,7 +84,8 @@ class StageScores:
 
 
 def load_engines(database_url: str, site_id: str, settings: Settings) -> SiteEngines:
-    """Assemble the stored site exactly as a worker does."""
+    """Assemble the stored site exactly as a worker does, warmed as a worker warms it (its
+    compiled loops loaded before the first device, not counted in a device's update)."""
     engine = create_engine(database_url)
     try:
         with Session(engine) as db:
@@ -94,7 +95,7 @@ def load_engines(database_url: str, site_id: str, settings: Settings) -> SiteEng
             loaded = assemble_site(db=db, site=site, raster_cell=settings.raster_cell)
     finally:
         engine.dispose()
-    return SiteEngines.for_site(loaded)
+    return SiteEngines.for_site(loaded).warm()
 
 
 def _renumbered(estimates: Sequence[Estimate], floors: np.ndarray) -> list[Estimate]:
