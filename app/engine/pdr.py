@@ -157,15 +157,26 @@ def magnetic_heading(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
         Degrees clockwise from magnetic north in [0, 360); NaN where an input is NaN.
     """
     # H = m × a points east, M = a × H points north (both horizontal)
-    east = np.cross(mag, acc)
-    north = np.cross(acc, east)
+    east = _cross(mag, acc)
+    north = _cross(acc, east)
     # ψ = atan2(Ĥ_y, M̂_y): the device y axis' east and north components
-    psi = np.degrees(
-        np.arctan2(
-            east[:, 1] / np.linalg.norm(east, axis=1), north[:, 1] / np.linalg.norm(north, axis=1)
-        )
-    )
+    psi = np.degrees(np.arctan2(east[:, 1] / _norm(east), north[:, 1] / _norm(north)))
     return np.mod(psi, 360.0)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return the row-wise cross product of (n, 3) arrays.
+
+    np.cross costs about 20 µs more a call, and the detector calls it twice a batch.
+    """
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    """Return the Euclidean norm of each row of an (n, 3) array."""
+    return np.sqrt(np.add.reduce(a * a, axis=1))
 
 
 def yaw_rate(acc: np.ndarray, gyro: np.ndarray) -> np.ndarray:
@@ -183,7 +194,7 @@ def yaw_rate(acc: np.ndarray, gyro: np.ndarray) -> np.ndarray:
     ndarray, shape (n,)
     """
     # r = -ω · a / |a|: counter-clockwise about up is a decreasing heading
-    return -np.sum(gyro * acc, axis=1) / np.linalg.norm(acc, axis=1)
+    return -np.sum(gyro * acc, axis=1) / _norm(acc)
 
 
 def weinberg_length(swing: np.ndarray, k: float) -> np.ndarray:
@@ -250,7 +261,7 @@ def imu_channels(imu: ImuSamples) -> np.ndarray:
     n = acc.shape[0]
     out = np.full((n, _N_CHANNELS), np.nan)
     # |a| = sqrt(ax² + ay² + az²)
-    out[:, _A] = np.linalg.norm(acc, axis=1)
+    out[:, _A] = _norm(acc)
     rot = np.asarray(imu.rot, dtype=float).reshape(n, -1)
     if rot.shape[1] >= 3:
         psi = np.radians(rotation_vector_heading(rot))
@@ -319,7 +330,7 @@ class Pdr:
             return Steps()
         x[:, 1:] = forward_fill(x[:, 1:], self._fill[1:])
         self._fill = x[-1].copy()
-        prev = np.r_[self._t_raw if self._t_raw is not None else t[0], t[:-1]]
+        prev = np.concatenate([[self._t_raw if self._t_raw is not None else t[0]], t[:-1]])
         cuts = np.flatnonzero(t - prev > self.params.max_gap_ms)
         parts = []
         for seg_t, seg_x in zip(np.split(t, cuts), np.split(x, cuts), strict=True):
@@ -338,7 +349,7 @@ class Pdr:
             src_t, src_x = t, x
         else:
             first = (self._t_raw // dt + 1) * dt
-            src_t, src_x = np.r_[self._t_raw, t], np.vstack([self._raw, x])
+            src_t, src_x = np.concatenate([[self._t_raw], t]), np.vstack([self._raw, x])
         self._t_raw, self._raw = int(t[-1]), x[-1].copy()
         grid = np.arange(first, int(t[-1]) + 1, dt, dtype=np.int64)
         if grid.size == 0:
@@ -367,7 +378,7 @@ class Pdr:
             i0 = ok[0]
             # u: magnetic heading unwrapped continuously from the previous batch
             seed = self._u_last if np.isfinite(self._u_last) else mag[i0]
-            u = np.unwrap(np.r_[seed, mag[i0:]])[1:]
+            u = np.unwrap(np.concatenate([[seed], mag[i0:]]))[1:]
             self._u_last = float(u[-1])
             alpha = 1.0 - np.exp(-p.grid_ms / (1000.0 * p.mag_time_constant_s))
             r = np.nan_to_num(g[i0:, _R])
@@ -384,7 +395,7 @@ class Pdr:
     def _peaks(self, grid: np.ndarray, cols: np.ndarray) -> Steps:
         """Find steps among the new grid samples; ``cols`` is (m, 3): f, sin ψ, cos ψ."""
         p = self.params
-        t = np.r_[self._buf_t, grid]
+        t = np.concatenate([self._buf_t, grid])
         v = np.vstack([self._buf, cols])
         f = v[:, 0]
         cand = local_maxima(f)

@@ -27,6 +27,9 @@ from app.engine.radiomap import RadioMap
 from app.engine.scan_knn import ReferenceScans
 from app.engine.wknn import Fingerprints
 
+_CAP_MARGIN_DB = 1e-6
+"""Margin (dB) past ``knn_max_db`` beyond which a floor's pooled distance is surely capped."""
+
 
 class EmissionModel:
     """Per-floor log-likelihood tables of every reference point, prepared once per site.
@@ -135,8 +138,15 @@ class EmissionModel:
         best = float(d.min())
         # e_s = exp(-(d_s - d_min) / τ)
         e = np.exp(-(d - best) / p.knn_pool_db)
+        capped = -p.emission_weight * p.knn_nats_per_db * p.knn_max_db
         out = []
         for pool, block in zip(self.pool, self.ref_blocks, strict=True):
+            near = d[block]
+            if not (near < best + p.knn_max_db + _CAP_MARGIN_DB).any():
+                # every survey scan of the floor is knn_max_db worse than the best: each
+                # point's soft minimum is at least that, so all are capped (no pooling)
+                out.append(np.full(pool.shape[0], capped))
+                continue
             pooled = pool @ e[block]
             # D_j - d_min = -τ ln Σ_s K_js e_s, at most knn_max_db
             excess = np.minimum(-p.knn_pool_db * np.log(np.maximum(pooled, 1e-300)), p.knn_max_db)
