@@ -20,12 +20,12 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from app.core.config import Settings
-from app.workers.process import STOP, worker_main
+from app.workers.messages import STOP, Done, Ingest, Ready, Result, decode_results, encode
+from app.workers.process import worker_main
 
 log = logging.getLogger(__name__)
 
-Message = dict[str, Any]
-ResultHandler = Callable[[list[Message]], None]
+ResultHandler = Callable[[list[Result]], None]
 
 
 class Broker(Protocol):
@@ -37,7 +37,7 @@ class Broker(Protocol):
         """Start delivering; ``on_results`` is called from a background thread."""
         ...
 
-    def publish(self, shard: int, message: Message) -> None:
+    def publish(self, shard: int, message: Ingest) -> None:
         """Queue a batch for the shard's worker."""
         ...
 
@@ -59,7 +59,7 @@ class Broker(Protocol):
 
 
 class _Slot:
-    """One shard's worker process, its queues and its unacknowledged batches."""
+    """One shard's worker process, its queues and its unacknowledged batches (encoded)."""
 
     def __init__(self, shard: int) -> None:
         self.shard = shard
@@ -67,7 +67,7 @@ class _Slot:
         self.inbox: Any = None
         self.outbox: Any = None
         self.reader: threading.Thread | None = None
-        self.pending: OrderedDict[str, Message] = OrderedDict()
+        self.pending: OrderedDict[str, bytes] = OrderedDict()
         self.ready = threading.Event()
 
 
@@ -112,8 +112,8 @@ class MemoryBroker:
                 daemon=True,
             )
             slot.process.start()
-            for message in slot.pending.values():
-                slot.inbox.put(message)
+            for data in slot.pending.values():
+                slot.inbox.put(data)
         slot.reader = threading.Thread(
             target=self._read,
             args=(slot, slot.outbox, slot.process),
@@ -126,7 +126,7 @@ class MemoryBroker:
         # until the worker has exited and everything it said is read
         while True:
             try:
-                results = outbox.get(timeout=0.2)
+                results = decode_results(outbox.get(timeout=0.2))
             except queue.Empty:
                 if not process.is_alive() and outbox.empty():
                     return
@@ -135,9 +135,9 @@ class MemoryBroker:
                 return
             with self._lock:
                 for result in results:
-                    if result.get("type") == "done":
-                        slot.pending.pop(result["batch_id"], None)
-            if any(r.get("type") == "ready" for r in results):
+                    if isinstance(result, Done):
+                        slot.pending.pop(result.batch_id, None)
+            if any(isinstance(r, Ready) for r in results):
                 slot.ready.set()
             self._on_results(results)
 
@@ -163,7 +163,7 @@ class MemoryBroker:
         self._stopping.set()
         for slot in self._slots:
             if slot.process is not None and slot.process.is_alive():
-                slot.inbox.put(STOP)
+                slot.inbox.put(encode(STOP))
         for slot in self._slots:
             if slot.process is None:
                 continue
@@ -178,12 +178,13 @@ class MemoryBroker:
 
     # -- traffic ---------------------------------------------------------------------
 
-    def publish(self, shard: int, message: Message) -> None:
+    def publish(self, shard: int, message: Ingest) -> None:
         """Record the batch as pending and hand it to the shard's worker."""
         slot = self._slots[shard]
+        data = encode(message)
         with self._lock:
-            slot.pending[message["batch_id"]] = message
-            slot.inbox.put(message)
+            slot.pending[message.batch_id] = data
+            slot.inbox.put(data)
 
     def backlog(self, shard: int) -> int:
         """Return the shard's unacknowledged batches."""

@@ -12,6 +12,7 @@ from app.core.identity import DeviceKey
 from app.engine.samples import Batch, Estimate
 from app.sites.assembly import LoadedSite
 from app.workers.convert import to_batch
+from app.workers.messages import Position, Sample, ZoneEvent
 from app.workers.trackers import (
     RADIO_KINDS,
     DeviceTracker,
@@ -21,10 +22,6 @@ from app.workers.trackers import (
     radio_kind,
 )
 from app.workers.zones import ZoneTracker
-
-Sample = dict[str, Any]
-Message = dict[str, Any]
-
 
 CHOOSE_WITHIN_MS = 10_000
 """Measurement time a new device's samples may wait for one that can place it."""
@@ -46,12 +43,12 @@ STORED_ONLY = ("odometry_x", "odometry_y")
 """Keys of a position message kept in the history but not sent to clients."""
 
 
-def public(position: Message) -> Message:
+def public(position: Position) -> Position:
     """Return a position message as clients get it (without what only the history keeps)."""
     return {k: v for k, v in position.items() if k not in STORED_ONLY}
 
 
-def _odometry(estimate: Estimate) -> Message:
+def _odometry(estimate: Estimate) -> dict[str, float | None]:
     """Return the estimate's odometry (m) under the history's keys, null without one."""
     odo = estimate.odometry
     if odo is None:
@@ -196,7 +193,9 @@ class DeviceSession:
 
     # -- estimates out -------------------------------------------------------------------
 
-    def emit(self, estimates: list[Estimate], *, now: int) -> tuple[list[Message], list[Message]]:
+    def emit(
+        self, estimates: list[Estimate], *, now: int
+    ) -> tuple[list[Position], list[ZoneEvent]]:
         """Return the position messages and zone events of the estimates not yet emitted.
 
         Estimates at or before the last emitted time are dropped: a filter
@@ -215,7 +214,7 @@ class DeviceSession:
         events = [ev for e in fresh for ev in self._zone_events(e)]
         return positions, events
 
-    def _zone_events(self, estimate: Estimate) -> list[Message]:
+    def _zone_events(self, estimate: Estimate) -> list[ZoneEvent]:
         """Return the enter/exit events this estimate confirms, each at its crossing time."""
         if not self.site.zones and not self.zones.inside:
             return []
@@ -237,7 +236,7 @@ class DeviceSession:
             for event, name, t in self.zones.update(int(estimate.t), inside)
         ]
 
-    def _position(self, estimate: Estimate, now: int) -> Message:
+    def _position(self, estimate: Estimate, now: int) -> Position:
         """Return the API's position message for an estimate computed at ``now``."""
         floor = self.site.model.floors[estimate.floor] if self.site.model.floors else None
         return {

@@ -12,15 +12,14 @@ from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
 from app.core.logging import configure_logging
 from app.core.time import now_ms
+from app.workers.messages import Done, Ingest, Ready, Stop, decode_inbound, encode
 from app.workers.shard import Shard
 from app.workers.sites import SiteCache
 
 log = logging.getLogger(__name__)
 
-STOP = {"type": "stop"}
 
-
-def _drain(inbox: Any, timeout: float, most: int) -> list[dict[str, Any]]:
+def _drain(inbox: Any, timeout: float, most: int) -> list[bytes]:
     try:
         messages = [inbox.get(timeout=timeout)]
     except queue.Empty:
@@ -33,7 +32,7 @@ def _drain(inbox: Any, timeout: float, most: int) -> list[dict[str, Any]]:
     return messages
 
 
-def handle_safely(shard: Shard, messages: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def handle_safely(shard: Shard, messages: list[Ingest]) -> list[Done]:
     """Process a drained group; if it fails, retry one by one so one bad batch fails alone."""
     try:
         return shard.handle(messages)
@@ -44,17 +43,9 @@ def handle_safely(shard: Shard, messages: list[dict[str, Any]]) -> list[dict[str
         try:
             results.extend(shard.handle([msg]))
         except Exception as exc:
-            log.exception("shard %d: batch %s failed", shard.shard, msg.get("batch_id"))
+            log.exception("shard %d: batch %s failed", shard.shard, msg.batch_id)
             shard.counters["failed_batches"] += 1
-            results.append(
-                {
-                    "type": "done",
-                    "batch_id": msg["batch_id"],
-                    "site_id": msg["site_id"],
-                    "device_id": msg["device_id"],
-                    "error": str(exc),
-                }
-            )
+            results.append(Done(msg.batch_id, msg.site_id, msg.device_id, error=str(exc)))
     return results
 
 
@@ -76,22 +67,22 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
     # ready once every site is built: a new device's first batch must not wait for rasters
     sites.poll(wait=True)
     shard = Shard(shard=shard_id, settings=settings, sessions=sessions, clock=now_ms, sites=sites)
-    outbox.put([{"type": "ready", "shard": shard_id}])
+    outbox.put(encode([Ready(shard_id)]))
     last_stats = 0.0
     while not stopping:
-        messages = _drain(inbox, timeout=0.05, most=settings.worker_max_messages)
-        if any(m.get("type") == "stop" for m in messages):
-            stopping = True
-            messages = [m for m in messages if m.get("type") != "stop"]
+        drained = _drain(inbox, timeout=0.05, most=settings.worker_max_messages)
+        inbound = [decode_inbound(data) for data in drained]
+        stopping = stopping or any(isinstance(m, Stop) for m in inbound)
+        messages = [m for m in inbound if isinstance(m, Ingest)]
         if messages:
-            outbox.put(handle_safely(shard, messages))
+            outbox.put(encode(handle_safely(shard, messages)))
         emitted = shard.tick()
         if emitted:
-            outbox.put(emitted)
+            outbox.put(encode(emitted))
         sites.poll()
         if time.monotonic() - last_stats >= settings.worker_stats_every_s:
-            outbox.put([shard.stats()])
+            outbox.put(encode([shard.stats()]))
             last_stats = time.monotonic()
-    outbox.put(shard.drain() + [shard.stats()])
+    outbox.put(encode([*shard.drain(), shard.stats()]))
     sites.close()
     engine.dispose()

@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -31,6 +30,8 @@ from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
 from app.core.outages import is_outage, retry_through_outage
 from app.core.time import now_ms
+from app.workers.broker import ResultHandler
+from app.workers.messages import Ingest, Result, decode_ingest, decode_results, encode
 from app.workers.process import handle_safely
 from app.workers.shard import Shard
 from app.workers.sites import SiteCache
@@ -40,7 +41,6 @@ log = logging.getLogger(__name__)
 
 GROUP = "workers"
 RESULTS = "locus:results"
-Message = dict[str, Any]
 
 
 def stream_key(shard: int) -> str:
@@ -92,7 +92,7 @@ class RedisBroker:
         self._owned = [False] * self.shards
         self._threads: list[threading.Thread] = []
 
-    def start(self, on_results: Any) -> None:
+    def start(self, on_results: ResultHandler) -> None:
         """Start the publisher and the results listener."""
         for shard in range(self.shards):
             ensure_group(self.client, shard)
@@ -106,9 +106,9 @@ class RedisBroker:
             thread.start()
             self._threads.append(thread)
 
-    def publish(self, shard: int, message: Message) -> None:
+    def publish(self, shard: int, message: Ingest) -> None:
         """Queue the batch for the publisher thread (pipelined XADDs, off the event loop)."""
-        self._outgoing.append((shard, json.dumps(message, separators=(",", ":")).encode()))
+        self._outgoing.append((shard, encode(message)))
         self._backlog[shard] += 1
         self._wake.set()
 
@@ -155,7 +155,7 @@ class RedisBroker:
                 while not self._stopping.is_set():
                     item = pubsub.get_message(timeout=0.2)
                     if item is not None:
-                        self._on_results(json.loads(item["data"]))
+                        self._on_results(decode_results(item["data"]))
             except redis.RedisError as exc:
                 self._went_down(exc, "listening for results")
                 time.sleep(0.5)
@@ -326,13 +326,13 @@ class RedisWorker:
         self._last_lease = time.monotonic()
 
     def _process(self, shard: int, entries: list[Any]) -> None:
-        messages = [json.loads(fields[b"m"]) for _, fields in entries if fields]
+        messages = [decode_ingest(fields[b"m"]) for _, fields in entries if fields]
         results = handle_safely(self.shards[shard], messages) if messages else []
 
         def report() -> None:
             pipe = self.client.pipeline(transaction=False)
             if results:
-                pipe.publish(RESULTS, json.dumps(results, separators=(",", ":")))
+                pipe.publish(RESULTS, encode(results))
             pipe.xack(stream_key(shard), GROUP, *[entry_id for entry_id, _ in entries])
             pipe.execute()
 
@@ -344,7 +344,7 @@ class RedisWorker:
         """Drain the shard (its devices snapshotted for the next owner) and release its lease."""
         results = self.shards.pop(shard_id).drain()
         if results:
-            self.client.publish(RESULTS, json.dumps(results, separators=(",", ":")))
+            self.client.publish(RESULTS, encode(results))
         self._release(keys=[lease_key(shard_id)], args=[self.name])
 
     def run(self, stop: threading.Event) -> None:
@@ -399,12 +399,12 @@ class RedisWorker:
             shard_id = int(name.rsplit(":", 1)[1])
             if shard_id in self.shards:
                 self._process(shard_id, entries)
-        emitted = [m for shard in self.shards.values() for m in shard.tick()]
+        emitted: list[Result] = [m for shard in self.shards.values() for m in shard.tick()]
         if time.monotonic() - self._last_stats >= 1.0:
             emitted += [shard.stats() for shard in self.shards.values()]
             self._last_stats = time.monotonic()
         if emitted:
-            self.client.publish(RESULTS, json.dumps(emitted, separators=(",", ":")))
+            self.client.publish(RESULTS, encode(emitted))
 
 
 def redis_worker_main(settings_json: str) -> None:

@@ -9,7 +9,6 @@ import time
 import uuid
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
 
 from app.core.config import Settings
 from app.core.errors import DomainError, Overloaded, ProcessingFailed, Unavailable
@@ -18,12 +17,20 @@ from app.core.metrics import Metrics
 from app.core.outages import RETRY_AFTER_S
 from app.positions.hub import PositionHub
 from app.workers.broker import Broker, MemoryBroker
+from app.workers.messages import (
+    Done,
+    Emitted,
+    Ingest,
+    Position,
+    Result,
+    Sample,
+    Stats,
+    ZoneEvent,
+)
 from app.workers.redis_broker import LocalRedisWorkers, RedisBroker
 from app.workers.shards import shard_of
 
 log = logging.getLogger(__name__)
-
-Message = dict[str, Any]
 
 
 @dataclass
@@ -32,7 +39,7 @@ class Outcome:
 
     accepted: int
     late: int
-    positions: list[Message]
+    positions: list[Position]
     error: DomainError | None = None
 
 
@@ -62,7 +69,7 @@ class Runtime:
         self.processed_t: dict[DeviceKey, int] = {}
         self.processed_wifi_t: dict[DeviceKey, int] = {}
         self.worker_counters: dict[int, dict[str, int]] = {}
-        self.parked: dict[DeviceKey, tuple[int, Message]] = {}
+        self.parked: dict[DeviceKey, tuple[int, Ingest]] = {}
         self._ids = itertools.count()
         self._prefix = uuid.uuid4().hex[:12]
         self._forwarder: asyncio.Task[None] | None = None
@@ -95,7 +102,7 @@ class Runtime:
         site_id: str,
         device_id: str,
         version: int,
-        samples: dict[str, list[Message]],
+        samples: dict[str, list[Sample]],
         wait: bool,
         flush: bool | None = None,
     ) -> tuple[str, asyncio.Future[Outcome] | None]:
@@ -128,15 +135,9 @@ class Runtime:
             self.waiting[batch_id] = future
         self.inflight[key] += 1
         self.sent_at[batch_id] = time.perf_counter()
-        message = {
-            "type": "ingest",
-            "batch_id": batch_id,
-            "site_id": site_id,
-            "device_id": device_id,
-            "version": version,
-            "samples": samples,
-            "flush": wait if flush is None else flush,
-        }
+        message = Ingest(
+            batch_id, site_id, device_id, version, samples, wait if flush is None else flush
+        )
         if overloaded:
             # policy "latest": park the batch; a newer one from the device replaces it
             superseded = self.parked.pop(key, None)
@@ -148,9 +149,9 @@ class Runtime:
         self.metrics.queue_depth.labels(str(shard)).set(self.broker.backlog(shard))
         return batch_id, future
 
-    def _supersede(self, message: Message) -> None:
-        batch_id, key = message["batch_id"], (message["site_id"], message["device_id"])
-        dropped = sum(len(items) for items in message["samples"].values())
+    def _supersede(self, message: Ingest) -> None:
+        batch_id, key = message.batch_id, (message.site_id, message.device_id)
+        dropped = sum(len(items) for items in message.samples.values())
         self.metrics.dropped_samples.labels("superseded").inc(dropped)
         self.sent_at.pop(batch_id, None)
         self._settle(key)
@@ -187,55 +188,54 @@ class Runtime:
 
     # -- results ----------------------------------------------------------------------
 
-    def _from_thread(self, results: list[Message]) -> None:
+    def _from_thread(self, results: list[Result]) -> None:
         if self.loop is not None and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self._dispatch, results)
 
-    def _dispatch(self, results: list[Message]) -> None:
-        fan_out: list[Message] = []
+    def _dispatch(self, results: list[Result]) -> None:
+        fan_out: list[Position | ZoneEvent] = []
         for result in results:
-            kind = result.get("type")
-            if kind == "done":
-                self._done(result)
-            elif kind == "stats":
+            if isinstance(result, Stats):
                 self._stats(result)
-            if kind in ("done", "emitted"):
-                fan_out.extend(result.get("positions", ()))
-                fan_out.extend(result.get("events", ()))
-                self.metrics.positions.inc(len(result.get("positions", ())))
-                self.metrics.zone_events.inc(len(result.get("events", ())))
+            if not isinstance(result, Done | Emitted):
+                continue
+            if isinstance(result, Done):
+                self._done(result)
+            fan_out.extend(result.positions)
+            fan_out.extend(result.events)
+            self.metrics.positions.inc(len(result.positions))
+            self.metrics.zone_events.inc(len(result.events))
         if fan_out:
             self.hub.publish(fan_out)
 
-    def _done(self, result: Message) -> None:
-        batch_id = result["batch_id"]
-        key = (result["site_id"], result["device_id"])
+    def _done(self, result: Done) -> None:
+        batch_id = result.batch_id
+        key = (result.site_id, result.device_id)
         if batch_id in self.sent_at:
             self.metrics.ingest_to_position.observe(
                 time.perf_counter() - self.sent_at.pop(batch_id)
             )
             self._settle(key)
-        if "processed_t" in result:
-            self.processed_t[key] = max(self.processed_t.get(key, -1), int(result["processed_t"]))
-            self.processed_wifi_t[key] = max(
-                self.processed_wifi_t.get(key, -1), int(result.get("processed_wifi_t", -1))
-            )
+        if result.processed_t is not None:
+            self.processed_t[key] = max(self.processed_t.get(key, -1), result.processed_t)
+            wifi_t = -1 if result.processed_wifi_t is None else result.processed_wifi_t
+            self.processed_wifi_t[key] = max(self.processed_wifi_t.get(key, -1), wifi_t)
         future = self.waiting.pop(batch_id, None)
         if future is not None and not future.done():
-            error = result.get("error")
+            error = result.error
             future.set_result(
                 Outcome(
-                    result.get("accepted", 0),
-                    result.get("late", 0),
-                    result.get("positions", []),
+                    result.accepted,
+                    result.late,
+                    result.positions,
                     None if error is None else ProcessingFailed(f"processing failed: {error}"),
                 )
             )
 
-    def _stats(self, result: Message) -> None:
-        shard = result["shard"]
+    def _stats(self, result: Stats) -> None:
+        shard = result.shard
         previous = self.worker_counters.get(shard, {})
-        counters = result["counters"]
+        counters = result.counters
         # workers report running totals; a restarted worker starts again from zero
         for outcome, key in (
             ("used", "samples"),
@@ -248,6 +248,6 @@ class Runtime:
                 delta if delta >= 0 else counters.get(key, 0)
             )
         self.worker_counters[shard] = counters
-        self.metrics.worker_devices.labels(str(shard)).set(result["devices"])
-        self.metrics.worker_update_seconds.labels(str(shard)).set(result["update_seconds"])
+        self.metrics.worker_devices.labels(str(shard)).set(result.devices)
+        self.metrics.worker_update_seconds.labels(str(shard)).set(result.update_seconds)
         self.metrics.queue_depth.labels(str(shard)).set(self.broker.backlog(shard))

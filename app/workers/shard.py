@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from sqlalchemy import func, insert, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -25,11 +25,11 @@ from app.engine.samples import Batch, Estimate
 from app.positions.models import PositionRecord
 from app.workers import snapshots
 from app.workers.device import DeviceSession, public
+from app.workers.messages import Done, Emitted, Ingest, Position, Stats, ZoneEvent
 from app.workers.sites import SiteCache
 from app.workers.snapshot_store import DatabaseSnapshots, SnapshotStore
 from app.workers.trackers import BatchEngine, DeviceTracker, SiteEngines
 
-Message = dict[str, Any]
 Clock = Callable[[], int]
 """The wall clock in epoch milliseconds."""
 Snapshot = tuple[DeviceSession, int, bytes]
@@ -123,18 +123,18 @@ class Shard:
             attempt, what=f"shard {self.shard}: {what}", on_wait=self.on_storage_wait
         )
 
-    def _route(self, db: Session, messages: list[Message], now: int) -> list[DeviceSession | None]:
+    def _route(self, db: Session, messages: list[Ingest], now: int) -> list[DeviceSession | None]:
         """Return each message's device session (None for an unknown site), loading its site
         and its snapshot as needed; repeatable, as it changes nothing a retry would redo."""
         routed: list[DeviceSession | None] = []
         for msg in messages:
-            engines = self.sites.get(db, msg["site_id"], msg["version"])
+            engines = self.sites.get(db, msg.site_id, msg.version)
             routed.append(
-                None if engines is None else self._device(db, msg["device_id"], engines, now)
+                None if engines is None else self._device(db, msg.device_id, engines, now)
             )
         return routed
 
-    def handle(self, messages: list[Message]) -> list[Message]:
+    def handle(self, messages: list[Ingest]) -> list[Done]:
         """Process ingest messages; positions are stored before any result is returned.
 
         What the database must give (sites, snapshots of devices new here) is read
@@ -142,45 +142,48 @@ class Shard:
         an outage, so a device's samples are used once whatever the database does.
         """
         started = time.perf_counter()
-        results: list[Message] = []
-        rows: list[Message] = []
+        results: list[Done] = []
+        rows: list[Position] = []
         # a device's silence is timed from when its samples were taken in
         now = self.clock()
         routed = self._storage(lambda db: self._route(db, messages, now), "reading devices")
         work: list[tuple[DeviceSession | None, Batch | None]] = []
+        counts: list[tuple[int, int, int]] = []
         for msg, device in zip(messages, routed, strict=True):
-            done: Message = {
-                "type": "done",
-                "batch_id": msg["batch_id"],
-                "site_id": msg["site_id"],
-                "device_id": msg["device_id"],
-            }
             if device is None:
                 self.counters["dropped_unknown_site"] += 1
-                results.append(
-                    done | {"accepted": 0, "late": 0, "duplicate": 0, "positions": [], "events": []}
-                )
                 work.append((None, None))
+                counts.append((0, 0, 0))
                 continue
-            accepted, late, duplicate = device.add(msg["samples"], now=now)
+            accepted, late, duplicate = device.add(msg.samples, now=now)
             self.counters["samples"] += accepted
             self.counters["late"] += late
             self.counters["duplicate"] += duplicate
-            batch = self._take(device, flush=bool(msg.get("flush")))
-            results.append(done | {"accepted": accepted, "late": late, "duplicate": duplicate})
-            work.append((device, batch))
+            work.append((device, self._take(device, flush=msg.flush)))
+            counts.append((accepted, late, duplicate))
         outputs = self._run(work)
         now = self.clock()
-        for result, (device, _), estimates in zip(results, work, outputs, strict=True):
+        for msg, (device, _), (accepted, late, duplicate), estimates in zip(
+            messages, work, counts, outputs, strict=True
+        ):
             if device is None:
+                results.append(Done(msg.batch_id, msg.site_id, msg.device_id))
                 continue
             positions, events = self._emit(device, estimates, now)
             rows.extend(positions)
-            result.update(
-                positions=[public(p) for p in positions],
-                events=events,
-                processed_t=device.processed_t,
-                processed_wifi_t=device.processed_wifi_t,
+            results.append(
+                Done(
+                    msg.batch_id,
+                    msg.site_id,
+                    msg.device_id,
+                    accepted=accepted,
+                    late=late,
+                    duplicate=duplicate,
+                    positions=[public(p) for p in positions],
+                    events=events,
+                    processed_t=device.processed_t,
+                    processed_wifi_t=device.processed_wifi_t,
+                )
             )
         touched = list({d.key: d for d, _ in work if d is not None}.values())
         heard = [(d.key, d.max_t) for d in touched]
@@ -245,18 +248,20 @@ class Shard:
 
     def _emit(
         self, device: DeviceSession, estimates: list[Estimate], now: int
-    ) -> tuple[list[Message], list[Message]]:
+    ) -> tuple[list[Position], list[ZoneEvent]]:
         positions, events = device.emit(estimates, now=now)
         self.counters["suppressed_repeats"] += len(estimates) - len(positions)
         return positions, events
 
-    def _flush(self, devices: list[DeviceSession], now: int) -> tuple[list[Message], list[Message]]:
+    def _flush(
+        self, devices: list[DeviceSession], now: int
+    ) -> tuple[list[Emitted], list[Position]]:
         """Position everything the quiet ``devices`` buffer or their filters hold back.
 
         Returns the results to report and the position rows to store.
         """
-        results: list[Message] = []
-        rows: list[Message] = []
+        results: list[Emitted] = []
+        rows: list[Position] = []
         work = [(d, self._take(d, flush=True)) for d in devices]
         for (device, _), estimates in zip(work, self._run(work), strict=True):
             # silence ends a recording: position its last, incomplete window too
@@ -265,18 +270,17 @@ class Shard:
             rows.extend(positions)
             if positions or events:
                 results.append(
-                    {
-                        "type": "emitted",
-                        "site_id": device.site.site_id,
-                        "device_id": device.device_id,
-                        "positions": [public(p) for p in positions],
-                        "events": events,
-                    }
+                    Emitted(
+                        device.site.site_id,
+                        device.device_id,
+                        [public(p) for p in positions],
+                        events,
+                    )
                 )
         self.counters["positions"] += len(rows)
         return results, rows
 
-    def _store_flushed(self, rows: list[Message], snaps: list[Snapshot], what: str) -> None:
+    def _store_flushed(self, rows: list[Position], snaps: list[Snapshot], what: str) -> None:
         """Store flushed positions and snapshots, through an outage."""
 
         def write(db: Session) -> None:
@@ -288,7 +292,7 @@ class Shard:
             self._storage(write, what)
             self._saved(snaps)
 
-    def tick(self) -> list[Message]:
+    def tick(self) -> list[Emitted]:
         """Flush quiet devices' buffers and filters; evict idle devices (with a snapshot).
 
         Does nothing within ``silence_scan_every_ms`` of the last scan, unless buffers are
@@ -314,7 +318,7 @@ class Shard:
             self.counters["evicted"] += 1
         return results
 
-    def drain(self) -> list[Message]:
+    def drain(self) -> list[Emitted]:
         """Position everything buffered, snapshot every device and let them all go.
 
         At stop and when the shard is handed to another worker: whoever runs the
@@ -354,16 +358,10 @@ class Shard:
             device.snapshot_t = t
         self.counters["snapshots"] += len(snaps)
 
-    def stats(self) -> Message:
+    def stats(self) -> Stats:
         """Return counters for the API's metrics."""
-        return {
-            "type": "stats",
-            "shard": self.shard,
-            "devices": len(self.devices),
-            "counters": dict(self.counters),
-            "update_seconds": self.update_seconds,
-        }
+        return Stats(self.shard, len(self.devices), dict(self.counters), self.update_seconds)
 
 
-def _row(position: Message) -> Message:
+def _row(position: Position) -> Position:
     return {k: v for k, v in position.items() if k != "type"}

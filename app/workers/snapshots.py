@@ -1,48 +1,94 @@
-"""Device snapshots as bytes: a versioned npz of flat arrays, never pickle.
+"""Device snapshots as bytes: a version byte, then msgpack of nested dicts, scalars and raw
+arrays, compressed.
 
 Stored state is data only: loading a snapshot cannot run code, whoever wrote
-the database or Redis entry.
+the database or Redis entry. An array is its dtype, shape and raw bytes in a
+msgpack extension; object dtypes are refused both ways, never pickled.
+
+Version 1 (an npz of flat ``/``-joined keys, each compressed on its own) is
+still read, so devices stored before version 2 resume. Version 2 exists
+because a worker snapshots every device each ``snapshot_every_ms`` and at
+eviction: the npz cost 1.4-2.5 ms a snapshot, this about 0.2 ms, in 40% of
+the bytes (one fast zlib pass over the whole, not one per array).
 """
 
 from __future__ import annotations
 
 import io
+import struct
+import zlib
 from typing import Any
 
+import msgspec
 import numpy as np
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_ARRAY = 1
+"""The msgpack extension code of an ndarray."""
+_HEAD = struct.Struct("<BB")
+"""An array's dtype length and number of dimensions, before its dtype, shape and bytes."""
+_ZIP = b"PK\x03\x04"
+"""How a version-1 snapshot (an npz, a zip file) begins."""
 _SEP = "/"
+_LEVEL = 1
+"""zlib's fastest level: at 6 a snapshot is 3-6% smaller and takes 1.5-2 times as long."""
 
 
-def _flatten(prefix: str, value: Any, out: dict[str, np.ndarray]) -> None:
+def _data(value: Any) -> Any:
+    """Return ``value`` as msgpack takes it: dicts kept, 0-d values as scalars, arrays raw."""
     if isinstance(value, dict):
-        if not value:
-            out[prefix + _SEP + "{}"] = np.zeros(0)
+        out = {}
         for key, item in value.items():
-            if _SEP in key:
-                raise ValueError(f"snapshot key {key!r} contains {_SEP!r}")
-            _flatten(f"{prefix}{_SEP}{key}" if prefix else key, item, out)
-    else:
-        array = np.asarray(value)
-        if array.dtype == object:
-            raise TypeError(f"snapshot value at {prefix!r} is not numeric or string data")
-        out[prefix] = array
+            if not isinstance(key, str):
+                raise TypeError(f"snapshot key {key!r} is not a string")
+            out[key] = _data(item)
+        return out
+    array = np.asarray(value)
+    if array.dtype.hasobject:
+        raise TypeError("snapshot value is not numeric or string data")
+    if array.ndim == 0:
+        # as version 1 read them back: a Python scalar of the value's kind
+        return array.item()
+    dtype = array.dtype.str.encode()
+    head = _HEAD.pack(len(dtype), array.ndim) + dtype + struct.pack(f"<{array.ndim}q", *array.shape)
+    return msgspec.msgpack.Ext(_ARRAY, head + np.ascontiguousarray(array).tobytes())
+
+
+def _array(code: int, data: memoryview) -> np.ndarray:
+    """Return the (writable) array of an extension written by :func:`_data`."""
+    if code != _ARRAY:
+        raise ValueError(f"unknown snapshot extension {code}")
+    n_dtype, ndim = _HEAD.unpack_from(data)
+    at = _HEAD.size + n_dtype
+    dtype = np.dtype(bytes(data[_HEAD.size : at]).decode())
+    if dtype.hasobject:
+        raise ValueError("snapshot array of object dtype")
+    shape = struct.unpack_from(f"<{ndim}q", data, at)
+    return np.frombuffer(data, dtype, offset=at + 8 * ndim).reshape(shape).copy()
+
+
+_encoder = msgspec.msgpack.Encoder()
+_decoder = msgspec.msgpack.Decoder(dict[str, Any], ext_hook=_array)
 
 
 def encode(state: dict[str, Any]) -> bytes:
-    """Serialise nested dicts of scalars, strings and ndarrays."""
-    flat: dict[str, np.ndarray] = {"__version__": np.asarray(FORMAT_VERSION)}
-    _flatten("", state, flat)
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, allow_pickle=False, **flat)
-    return buffer.getvalue()
+    """Serialise nested dicts (string keys) of scalars, strings and ndarrays."""
+    return bytes([FORMAT_VERSION]) + zlib.compress(_encoder.encode(_data(state)), _LEVEL)
 
 
 def decode(blob: bytes) -> dict[str, Any]:
-    """Inverse of :func:`encode`; 0-d arrays come back as Python scalars."""
+    """Inverse of :func:`encode`, also of version 1; 0-d values come back as Python scalars."""
+    if blob[:4] == _ZIP:
+        return _decode_v1(blob)
+    if blob[:1] != bytes([FORMAT_VERSION]):
+        raise ValueError(f"unsupported snapshot version {blob[0] if blob else None}")
+    return _decoder.decode(zlib.decompress(memoryview(blob)[1:]))
+
+
+def _decode_v1(blob: bytes) -> dict[str, Any]:
+    """Return the state of a version-1 snapshot: flat ``/``-joined keys in an npz."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as data:
-        if int(data["__version__"]) != FORMAT_VERSION:
+        if int(data["__version__"]) != 1:
             raise ValueError(f"unsupported snapshot version {int(data['__version__'])}")
         state: dict[str, Any] = {}
         for key in data.files:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ from app.core.db import session_scope
 from app.sites.assembly import LoadedSite
 from app.workers import snapshots
 from app.workers.device import DeviceSession, public
+from app.workers.messages import Done, Emitted, Ingest, decode_results, encode
 from app.workers.shard import Shard
 from app.workers.snapshot_store import DatabaseSnapshots
 from app.workers.trackers import PF, SiteEngines
@@ -45,24 +47,16 @@ def _id(name: str) -> str:
     return f"{name}-{uuid.uuid4().hex[:8]}"
 
 
-def _message(office: LoadedSite, device_id: str, kind: str, samples: list[Sample]) -> dict:
-    return {
-        "type": "ingest",
-        "batch_id": uuid.uuid4().hex,
-        "site_id": SITE_ID,
-        "device_id": device_id,
-        "version": office.version,
-        "samples": {kind: samples},
-        "flush": False,
-    }
+def _message(office: LoadedSite, device_id: str, kind: str, samples: list[Sample]) -> Ingest:
+    return Ingest(uuid.uuid4().hex, SITE_ID, device_id, office.version, {kind: samples})
 
 
-def _positions(results: list[dict[str, Any]], device_id: str) -> list[dict[str, Any]]:
+def _positions(results: Sequence[Done | Emitted], device_id: str) -> list[dict[str, Any]]:
     return [
         {k: v for k, v in p.items() if k != "computed_at"}
         for r in results
-        if r["device_id"] == device_id
-        for p in r.get("positions", ())
+        if r.device_id == device_id
+        for p in r.positions
     ]
 
 
@@ -93,7 +87,7 @@ def test_interleaved_messages_reach_their_own_devices(
         )
 
     assert set(shard.devices) == {(SITE_ID, walker), (SITE_ID, other)}
-    assert [r["device_id"] for r in results] == [walker, other] * 10
+    assert [r.device_id for r in results] == [walker, other] * 10
     assert _positions(results, walker) == _alone(engines, walker, "uwb", mine)
     assert _positions(results, other) == _alone(engines, other, "uwb", theirs)
 
@@ -186,7 +180,7 @@ def test_the_next_shard_resumes_a_drained_device_from_its_snapshot(
     tag = _id("tag")
     uploads = per_second(uwb_ranges(12))
     first = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
-    results = []
+    results: list[Done | Emitted] = []
     for samples in uploads[:6]:
         results += first.handle([_message(office, tag, "uwb", samples)])
     results += first.drain()
@@ -201,3 +195,22 @@ def test_the_next_shard_resumes_a_drained_device_from_its_snapshot(
     ts = [p["t"] for p in _positions(results, tag)]
     assert ts == sorted(set(ts)), "no position is emitted twice"
     assert ts[-1] >= uploads[-1][0]["t"] - 2000
+
+
+def test_what_a_shard_answers_is_plain_data_the_brokers_carry_unchanged(
+    shard: Shard, office: LoadedSite
+) -> None:
+    tag, phone = _id("tag"), _id("phone")
+    results: list[Done | Emitted] = []
+    # the tag walks into the Lab (zone events); the phone is on the particle filter
+    for a, b in zip(per_second(uwb_ranges(27)), per_second(ble_scans(27)), strict=True):
+        results += shard.handle(
+            [_message(office, tag, "uwb", a), _message(office, phone, "ble", b)]
+        )
+    results += shard.drain()
+
+    assert (
+        any(r.events for r in results) and _positions(results, tag) and _positions(results, phone)
+    )
+    assert decode_results(encode(results)) == results
+    assert decode_results(encode([shard.stats()])) == [shard.stats()]
