@@ -120,6 +120,11 @@ class ReferenceScans:
         self.col_start = np.searchsorted(col, np.arange(int(self.usable.sum()) + 1))
         self.ref_scan = scan.astype(np.int32)
         self.ref_level = level
+        # the same entries by scan, to compare a query with a few reference scans
+        by_scan = np.argsort(scan, kind="stable")
+        self.scan_start = np.searchsorted(scan[by_scan], np.arange(survey.n_scans + 1))
+        self.scan_col = col[by_scan].astype(np.int32)
+        self.scan_level = level[by_scan]
         self.total = np.bincount(scan, weights=level, minlength=survey.n_scans)
         self.xy = np.asarray(survey.scan_xy, dtype=float)
         self.floor = np.asarray(survey.scan_floor, dtype=np.int64)
@@ -202,6 +207,30 @@ class ReferenceScans:
         best = max(float(d[near].min()), 1e-3)
         weight = (np.maximum(d[near], best) / best) ** -self.params.weight_power
         return self.xy[block][near], weight / weight.sum()
+
+    def level_offset(self, tx: np.ndarray, rssi: np.ndarray, scans: np.ndarray) -> float | None:
+        """Return the median of the query's level minus each reference scan's (dB).
+
+        Over the usable transmitters the query and each of ``scans`` (reference
+        scan indices) both heard, levels clipped at ``floor_dbm`` as the
+        distance clips them: how much louder this phone hears the same access
+        points than the survey did. None when they share none.
+        """
+        p = self.params
+        tx = np.asarray(tx, dtype=np.int64)
+        rssi = np.asarray(rssi, dtype=float)
+        inside = (tx >= 0) & (tx < self.n_tx)
+        tx, rssi = tx[inside], rssi[inside]
+        on = self.usable[tx]
+        query = np.full(int(self.usable.sum()), np.nan)
+        query[self.column[tx[on]]] = np.maximum(rssi[on] - p.floor_dbm, 0.0)
+        entries = np.concatenate(
+            [np.arange(self.scan_start[j], self.scan_start[j + 1]) for j in scans]
+            or [np.zeros(0, dtype=np.int64)]
+        )
+        diff = query[self.scan_col[entries]] - self.scan_level[entries]
+        diff = diff[np.isfinite(diff)]
+        return float(np.median(diff)) if diff.size else None
 
     def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
         """Return the position (m) of the ``k`` nearest scans of ``block`` (``neighbours``)."""

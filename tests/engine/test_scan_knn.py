@@ -205,3 +205,38 @@ def test_the_hmm_radius_grows_with_the_scans_distance_to_the_nearest_survey_scan
     assert [e.accuracy for e in half] == pytest.approx([2.0 * e.accuracy for e in typical])
     # without survey scans the radius is the posterior's alone
     assert model.best_match(0, np.array([TX_X.size + 3]), np.array([-60.0])) is None
+
+
+def test_the_level_offset_is_the_median_difference_on_shared_transmitters(survey: Survey) -> None:
+    refs = ReferenceScans(survey, n_tx=TX_X.size, params=ScanKnnParams(min_heard=1))
+    tx, rssi = _heard(12.0, np.random.default_rng(6))
+    near = np.flatnonzero(np.abs(refs.xy[:, 0] - 12.0) < 1.0)
+    base = refs.level_offset(tx, rssi, near)
+    assert base is not None and abs(base) < 3.0
+    # the same scan heard 7 dB louder differs from the same survey scans by 7 dB more
+    louder = refs.level_offset(tx, rssi + 7.0, near)
+    assert louder == pytest.approx(base + 7.0)
+    # nothing shared: no offset
+    assert refs.level_offset(np.array([TX_X.size + 1]), np.array([-50.0]), near) is None
+
+
+def test_the_hmm_learns_a_phones_rssi_offset_and_a_survey_like_phone_keeps_none(
+    survey: Survey,
+) -> None:
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1))
+    params = HmmParams()
+    model = EmissionModel([m], params)
+
+    def offset_after_walk(shift_db: float) -> float:
+        tracker = HmmTracker(model, params)
+        rng = np.random.default_rng(12)
+        for k, x in enumerate(np.linspace(5.0, 35.0, 40)):
+            tx, rssi = _heard(float(x), rng)
+            t = np.full(tx.size, 1000 * k, dtype=np.int64)
+            tracker.process(Batch(rssi=RssiReadings(t, tx.astype(np.int32), rssi + shift_db)))
+        return tracker.rssi_offset
+
+    # 40 scans against a prior worth 10: about four fifths of the true 8 dB
+    assert 4.5 < offset_after_walk(8.0) < 8.5
+    assert 4.5 < -offset_after_walk(-8.0) < 8.5
+    assert abs(offset_after_walk(0.0)) < 1.5

@@ -250,6 +250,22 @@ class EmissionModel:
         log_rel = np.log(np.maximum(density, 1e-300)) - np.log(at_centres.max())
         return p.emission_weight * p.fix_nats * np.maximum(log_rel, -p.fix_max_nats)
 
+    def level_offset(self, f: int, point: int, tx: np.ndarray, rssi: np.ndarray) -> float | None:
+        """Return how much louder (dB) the scan heard than the survey scans around a point.
+
+        The survey scans are those point ``point`` of map ``f`` pools, chosen
+        by place, not by how well they match: scans
+        chosen by match would be the ones as loud as this phone, and hide its
+        offset. None without survey scans there or anything shared.
+        """
+        if self.references is None:
+            return None
+        pool = self.pool[f]
+        near = pool.indices[pool.indptr[point] : pool.indptr[point + 1]]
+        if near.size == 0:
+            return None
+        return self.references.level_offset(tx, rssi, near + (self.ref_blocks[f].start or 0))
+
     def best_match(self, f: int, tx: np.ndarray, rssi: np.ndarray) -> float | None:
         """Return the scan's distance (dB) to the nearest survey scan of map ``f``.
 

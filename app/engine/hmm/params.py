@@ -72,6 +72,20 @@ class HmmParams:
     fix_sigma_m : float
         Spread (m) of each neighbour's component: about the per-scan k-NN's
         own error (on validation walks 8 m beat 3, 5 and 12 m).
+    offset_prior_scans : float
+        The device's RSSI offset, taken off every scan before matching, is
+        the mean level difference of its scans from the survey scans made
+        where the posterior is surest, shrunk towards 0 by a prior worth this
+        many scans. Phones of different makes hear the same access point
+        several dB apart, and one 6 dB louder or quieter than the survey's
+        phones matches the wrong places: on site1's validation walks with
+        every reading shifted by +6 / -6 dB the live mean went from 6.91 /
+        7.07 m to 6.70 / 6.64 m (walks of a minute or two; a phone tracked
+        longer converges further), and unshifted from 6.29 to 6.35 m.
+        Scans chosen by match rather than by place hide the offset (they are
+        the ones as loud as the phone) and recovered less.
+    offset_max_db : float
+        The running offset stays within ± this (dB).
     fix_max_nats : float
         The fix's log-density counts at most this far below its peak, so a
         wrong fix cannot rule a point out alone.
@@ -158,6 +172,8 @@ class HmmParams:
     fix_nats: float = 10.0
     fix_sigma_m: float = 8.0
     fix_max_nats: float = 30.0
+    offset_prior_scans: float = 10.0
+    offset_max_db: float = 15.0
     unmapped_dbm: float = -95.0
     unmapped_var_db2: float = 36.0
     unmapped_detect: float = 0.02

@@ -66,6 +66,9 @@ class HmmTracker:
             self.cov = np.zeros((2, 2))
             self.fix_var = 0.0
             self.match = 1.0
+            self.rssi_offset = 0.0
+            self.offset_sum = 0.0
+            self.offset_scans = 0
             self.t_scan = -1
             self.t_emit = -1
             self.t_imu = -1
@@ -96,6 +99,9 @@ class HmmTracker:
             "cov": self.cov.copy(),
             "fix_var": self.fix_var,
             "match": self.match,
+            "rssi_offset": self.rssi_offset,
+            "offset_sum": self.offset_sum,
+            "offset_scans": self.offset_scans,
             "t_scan": self.t_scan,
             "t_emit": self.t_emit,
             "t_imu": self.t_imu,
@@ -128,6 +134,9 @@ class HmmTracker:
         self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
         self.fix_var = float(state.get("fix_var", 0.0))
         self.match = float(state.get("match", 1.0))
+        self.rssi_offset = float(state.get("rssi_offset", 0.0))
+        self.offset_sum = float(state.get("offset_sum", 0.0))
+        self.offset_scans = int(state.get("offset_scans", 0))
         self.t_scan = int(state["t_scan"])
         self.t_emit = int(state["t_emit"])
         self.t_imu = int(state["t_imu"])
@@ -263,6 +272,8 @@ class HmmTracker:
     def _scan(self, t: int, index: np.ndarray, out: list[Estimate]) -> None:
         p, model = self.params, self.model
         tx, rssi = unique_readings(self.scan_tx[index], self.scan_rssi[index])
+        # as loud as the survey's phones would have heard it
+        rssi = rssi - self.rssi_offset
         ll = model.log_likelihoods(tx, rssi)
         # per-floor marginal under the floor's own tempering: ln mean_j L_j^(w_f / w)
         rescale = p.floor_weight / p.emission_weight
@@ -283,6 +294,7 @@ class HmmTracker:
             self._update(t, ll[self.map], tx, rssi)
         self.fix_var = self._fix_variance(tx, rssi)
         self.match = self._match_factor(tx, rssi)
+        self._learn_offset(tx, rssi)
         self.t_scan = t
         out.append(self._estimate(t))
 
@@ -302,6 +314,26 @@ class HmmTracker:
         spread2 = float(weight @ np.sum((xy - fix) ** 2, axis=1)) / 2.0
         mean, _ = self._posterior()
         return spread2 + float(np.sum((mean - fix) ** 2))
+
+    def _learn_offset(self, tx: np.ndarray, rssi: np.ndarray) -> None:
+        """Update the device's RSSI offset with what this scan says it is.
+
+        Phones of different makes hear the same access point several dB apart.
+        A scan compared with the survey scans made where the posterior is most
+        sure measures the offset (plus what is already taken off); the offset
+        is the mean of those measurements shrunk towards 0 by a prior worth
+        ``offset_prior_scans`` scans, so a phone like the survey's stays near 0
+        and a louder one converges to its offset.
+        """
+        p = self.params
+        measured = self.model.level_offset(self.map, int(np.argmax(self.prob)), tx, rssi)
+        if measured is None:
+            return
+        self.offset_sum += measured + self.rssi_offset
+        self.offset_scans += 1
+        # o = Σ m_k / (n + n₀), within ±o_max
+        shrunk = self.offset_sum / (self.offset_scans + p.offset_prior_scans)
+        self.rssi_offset = float(np.clip(shrunk, -p.offset_max_db, p.offset_max_db))
 
     def _match_factor(self, tx: np.ndarray, rssi: np.ndarray) -> float:
         """Return the scan's best match on the tracked floor relative to a typical one.
