@@ -50,11 +50,19 @@ def scan_at(t: int, cell: int, tx: tuple[int, int], n: int = 30) -> Batch:
     )
 
 
-def test_steps_add_up_with_along_and_across_track_variance() -> None:
-    d, cov = step_displacement(np.array([0.7, 0.7]), np.array([90.0, 90.0]), 0.1, 10.0)
-    # two steps east: D = (1.4, 0); along x σ_d² each, across (L σ_φ)² each
-    assert d == pytest.approx([1.4, 0.0], abs=1e-12)
-    assert cov == pytest.approx(np.diag([2 * 0.01, 2 * (0.7 * np.radians(10.0)) ** 2]), abs=1e-12)
+def test_a_step_moves_along_its_heading_with_along_and_across_track_variance() -> None:
+    d, cov = step_displacement(0.7, 90.0, 0.1, 10.0)
+    # a step east: D = (0.7, 0); along x σ_d², across (L σ_φ)²
+    assert d == pytest.approx([0.7, 0.0], abs=1e-12)
+    assert cov == pytest.approx(np.diag([0.01, (0.7 * np.radians(10.0)) ** 2]), abs=1e-12)
+    # north-east: the two variances rotate with the step, the trace stays their sum
+    d, cov = step_displacement(1.0, 45.0, 0.1, 10.0)
+    assert d == pytest.approx([np.sqrt(0.5), np.sqrt(0.5)], abs=1e-12)
+    assert np.trace(cov) == pytest.approx(0.01 + np.radians(10.0) ** 2, abs=1e-12)
+    assert cov[0, 1] == pytest.approx(0.5 * (0.01 - np.radians(10.0) ** 2), abs=1e-12)
+    # no heading: no move, the length spread every way
+    d, cov = step_displacement(0.7, float("nan"), 0.1, 10.0)
+    assert d == pytest.approx([0.0, 0.0]) and cov == pytest.approx(np.eye(2) * 0.25)
 
 
 def test_transition_moves_the_mass_by_the_displacement() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -253,8 +254,8 @@ class HmmTracker:
 
     def _step(self, i: int, out: list[Estimate]) -> None:
         p = self.params
-        length = self.steps.length[i : i + 1]
-        heading = self.steps.heading[i : i + 1]
+        length = float(self.steps.length[i])
+        heading = float(self.steps.heading[i])
         d, cov = step_displacement(length, heading, p.step_length_std_m, p.heading_std_deg)
         self.d = self.d + d
         self.odometry = self.odometry + d
@@ -262,10 +263,10 @@ class HmmTracker:
         t = int(self.steps.t[i])
         if self.t_step >= 0 and t > self.t_step:
             # v = L / Δt
-            self.speed = float(length[0]) * 1000.0 / (t - self.t_step)
+            self.speed = length * 1000.0 / (t - self.t_step)
         self.t_step = t
-        if np.isfinite(heading[0]):
-            self.heading = float(heading[0])
+        if math.isfinite(heading):
+            self.heading = heading
         if self.map >= 0:
             out.append(self._estimate(t))
 
