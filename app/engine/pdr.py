@@ -250,12 +250,13 @@ _A, _RS, _RC, _R, _MS, _MC = range(6)
 _N_CHANNELS = 6
 
 
-def imu_channels(imu: ImuSamples) -> np.ndarray:
+def imu_channels(imu: ImuSamples, compass: bool = True) -> np.ndarray:
     """Return the per-sample channels the detector resamples, shape (n, 6).
 
     Columns: |a| (m/s²), sin and cos of the rotation-vector heading, yaw rate
     (rad/s, clockwise), sin and cos of the magnetic heading; NaN where the
-    source field is absent.
+    source field is absent. Without ``compass`` the last three (what the
+    gyro + magnetometer heading needs) are left NaN.
     """
     acc = np.asarray(imu.acc, dtype=float)
     n = acc.shape[0]
@@ -266,6 +267,8 @@ def imu_channels(imu: ImuSamples) -> np.ndarray:
     if rot.shape[1] >= 3:
         psi = np.radians(rotation_vector_heading(rot))
         out[:, _RS], out[:, _RC] = np.sin(psi), np.cos(psi)
+    if not compass:
+        return out
     gyro = np.asarray(imu.gyro, dtype=float).reshape(n, -1)
     if gyro.shape[1] == 3:
         out[:, _R] = yaw_rate(acc, gyro)
@@ -315,7 +318,10 @@ class Pdr:
         value, so a device may send them at a lower rate than the accelerometer.
         """
         t = np.asarray(imu.t, dtype=np.int64)
-        x = imu_channels(imu)
+        compass = not self._rotation_covers(imu)
+        if not compass:
+            self._forget_compass()
+        x = imu_channels(imu, compass)
         order = np.argsort(t, kind="stable")
         t, x = t[order], x[order]
         keep = np.isfinite(x[:, _A])
@@ -340,6 +346,28 @@ class Pdr:
                 self._reset_stream()
             parts.append(self._segment(seg_t, seg_x))
         return Steps.concat(parts)
+
+    def _rotation_covers(self, imu: ImuSamples) -> bool:
+        """Return whether the rotation vector gives every heading of this batch.
+
+        Every sample carries one and so did the last sample before the batch
+        (the grid interpolates from it): the gyro + magnetometer heading, a
+        third of the detector's work, would go unused.
+        """
+        rot = np.asarray(imu.rot, dtype=float).reshape(len(imu.t), -1)
+        if rot.shape[1] < 3 or not np.isfinite(rot[:, :3]).all():
+            return False
+        return self._t_raw is None or bool(np.isfinite(self._raw[_RS]))
+
+    def _forget_compass(self) -> None:
+        """Drop the gyro + magnetometer heading's state while the rotation vector rules.
+
+        A later stretch without the rotation vector starts that heading afresh
+        from the magnetometer.
+        """
+        self._u_last = float("nan")
+        self._zi_head = None
+        self._fill[[_R, _MS, _MC]] = np.nan
 
     def _segment(self, t: np.ndarray, x: np.ndarray) -> Steps:
         """Process samples with no long pause: resample, filter, look for peaks."""

@@ -196,6 +196,20 @@ def test_without_rotation_vector_gyro_bias_leaves_the_closed_form_offset() -> No
     np.testing.assert_allclose(steps.heading[settled], expected, atol=1e-3)
 
 
+def test_when_the_rotation_vector_stops_the_compass_takes_over_afresh() -> None:
+    # 40 steps with a rotation vector, then the phone stops sending it: the gyro +
+    # magnetometer heading, skipped while the rotation vector gave every heading, starts
+    # from the magnetometer and gives the same heading
+    imu = _walking(cadence_hz=1.8, n_steps=40, amplitude=3.0, heading_deg=75.0, noise=0.0)
+    half = imu.t[0] + 3000 + 11_000
+    rot = np.where((imu.t < half)[:, None], imu.rot, np.nan)
+    mixed = ImuSamples(t=imu.t, acc=imu.acc, gyro=imu.gyro, mag=imu.mag, rot=rot)
+    pdr = Pdr()
+    steps = Steps.concat([pdr.update(b) for b in _chunks(mixed, np.full(200, 50))])
+    assert (steps.t < half).sum() >= 15 and (steps.t > half).sum() >= 15
+    np.testing.assert_allclose(steps.heading, 75.0, atol=1e-6)
+
+
 def test_chunked_stream_equals_whole_stream_on_a_synthetic_walk() -> None:
     imu = _walking(cadence_hz=1.9, n_steps=30, amplitude=3.0, heading_deg=10.0, rot=False)
     whole = detect_steps(imu)

@@ -238,8 +238,13 @@ class EmissionModel:
             return None
         centres, weight = near
         xy = self.xy[f] if points is None else self.xy[f][points]
-        # ln Σ_i w_i exp(-|x - c_i|² / 2σ²), relative to its largest value at a centre
-        d2 = np.sum((xy[:, None, :] - centres[None, :, :]) ** 2, axis=2)
+        # ln Σ_i w_i exp(-|x - c_i|² / 2σ²), relative to its largest value at a centre;
+        # |x - c|² = |x|² + |c|² - 2 x·c: a matrix product, not a (n, k, 2) difference
+        d2 = (
+            np.einsum("ij,ij->i", xy, xy)[:, None]
+            + np.einsum("ij,ij->i", centres, centres)[None, :]
+            - 2.0 * (xy @ centres.T)
+        )
         density = np.exp(-0.5 * d2 / p.fix_sigma_m**2) @ weight
         at_centres = (
             np.exp(
