@@ -334,7 +334,7 @@ class HmmTracker:
         self.offset_scans += 1
         # o = Σ m_k / (n + n₀), within ±o_max
         shrunk = self.offset_sum / (self.offset_scans + p.offset_prior_scans)
-        self.rssi_offset = float(np.clip(shrunk, -p.offset_max_db, p.offset_max_db))
+        self.rssi_offset = min(max(shrunk, -p.offset_max_db), p.offset_max_db)
 
     def _match_factor(self, tx: np.ndarray, rssi: np.ndarray) -> float:
         """Return the scan's best match on the tracked floor relative to a typical one.
