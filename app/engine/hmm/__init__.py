@@ -20,7 +20,11 @@ one floor's reference points is carried from scan to scan:
    heard and unheard transmitters alike (missing signals are evidence). Each
    transmitter's term is floored so one multipath outlier cannot veto a
    point, and the sum is tempered (readings of one scan are correlated and
-   the map is noisy).
+   the map is noisy). Where the maps carry their survey scans, a point's
+   evidence is instead how well the survey scans around it match the scan
+   (``app.engine.scan_knn``), plus a Gaussian mixture at the scan's k-NN
+   neighbours (the fix), both tempered; the scan is first lowered by the
+   device's learned RSSI offset.
 4. **Posterior** ∝ transition × emission, normalised; the position is the
    weighted mean, moved on by the steps taken since the scan.
 
@@ -30,7 +34,10 @@ small switching probability; the tracked floor changes only when another
 floor's belief passes ``floor_switch_posterior`` (hysteresis), and the
 position restarts there from k-NN. When a scan is far better explained
 anywhere on the floor than where the distribution is (``relocate_margin``),
-the track is lost and restarts the same way.
+the track is lost and restarts the same way. The 68% radius is the tempered
+posterior's spread, the steps' since the scan and the k-NN's disagreement
+with the posterior, scaled by how far the scan is from its nearest survey
+scan and by the site's calibration.
 
 Modules: ``params`` (the tunable constants), ``emission`` (step 3 and the
 k-NN of step 1, prepared once per site), ``transition`` (step 2 on the grid),

@@ -9,7 +9,8 @@ Two emissions, prepared once per site and shared by all devices:
   ``knn_radius_m`` of the point, weighted by a Gaussian kernel of distance,
   ``d_min`` the best survey scan's anywhere. It compares scans only on what
   both heard, so a sparse survey does not make unmeasured transmitters
-  evidence against a point;
+  evidence against a point. The tracker adds the k-NN fix
+  (``fix_log_density``): where on the floor the best-matching scans are;
 - otherwise (maps stored without their scans), the seed's per-point
   Gaussian with detection rates.
 """
@@ -258,10 +259,10 @@ class EmissionModel:
     def level_offset(self, f: int, point: int, tx: np.ndarray, rssi: np.ndarray) -> float | None:
         """Return how much louder (dB) the scan heard than the survey scans around a point.
 
-        The survey scans are those point ``point`` of map ``f`` pools, chosen
-        by place, not by how well they match: scans
-        chosen by match would be the ones as loud as this phone, and hide its
-        offset. None without survey scans there or anything shared.
+        The survey scans are those point ``point`` of map ``f`` pools, chosen by
+        place, not by how well they match: scans chosen by match would be the
+        ones as loud as this phone, and hide its offset. None without survey
+        scans there or anything shared.
         """
         if self.references is None:
             return None
