@@ -170,13 +170,7 @@ class ReferenceScans:
             Their RSSI (dBm).
         """
         p = self.params
-        tx = np.asarray(tx, dtype=np.int64)
-        rssi = np.asarray(rssi, dtype=float)
-        inside = (tx >= 0) & (tx < self.n_tx)
-        tx, rssi = tx[inside], rssi[inside]
-        # transmitters the survey never heard (installed since, a phone's hotspot) say nothing
-        on = self.usable[tx]
-        tx, level = tx[on], np.maximum(rssi[on] - p.floor_dbm, 0.0)
+        tx, level = self._query(tx, rssi)
         query_total = float(level.sum())
         if tx.size == 0:
             return np.full(self.n_scans, np.inf)
@@ -192,6 +186,19 @@ class ReferenceScans:
             p.no_common_db,
             p.unshared_penalty,
         )
+
+    def _query(self, tx: np.ndarray, rssi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return a query's usable transmitters and their levels (dB above ``floor_dbm``).
+
+        Transmitters outside the site, or that the survey never heard (installed
+        since, a phone's hotspot), say nothing and are dropped.
+        """
+        tx = np.asarray(tx, dtype=np.int64)
+        rssi = np.asarray(rssi, dtype=float)
+        inside = (tx >= 0) & (tx < self.n_tx)
+        tx, rssi = tx[inside], rssi[inside]
+        on = self.usable[tx]
+        return tx[on], np.maximum(rssi[on] - self.params.floor_dbm, 0.0)
 
     def neighbours(
         self, d: np.ndarray, block: slice, k: int | None = None
@@ -216,14 +223,9 @@ class ReferenceScans:
         distance clips them: how much louder this phone hears the same access
         points than the survey did. None when they share none.
         """
-        p = self.params
-        tx = np.asarray(tx, dtype=np.int64)
-        rssi = np.asarray(rssi, dtype=float)
-        inside = (tx >= 0) & (tx < self.n_tx)
-        tx, rssi = tx[inside], rssi[inside]
-        on = self.usable[tx]
+        tx, level = self._query(tx, rssi)
         query = np.full(int(self.usable.sum()), np.nan)
-        query[self.column[tx[on]]] = np.maximum(rssi[on] - p.floor_dbm, 0.0)
+        query[self.column[tx]] = level
         entries = np.concatenate(
             [np.arange(self.scan_start[j], self.scan_start[j + 1]) for j in scans]
             or [np.zeros(0, dtype=np.int64)]

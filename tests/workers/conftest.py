@@ -1,10 +1,14 @@
-"""Fixtures of the worker tests: the demo office stored in a database, and its engines."""
+"""Fixtures of the worker tests: the demo office stored in a database, its engines, and a
+Redis connection."""
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
+import redis
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
@@ -19,6 +23,19 @@ from app.workers.trackers import SiteEngines
 
 SITE_ID = "office"
 RASTER_CELL = 0.25
+REDIS_URL = os.environ.get("LOCUS_TEST_REDIS_URL", "redis://127.0.0.1:6379/14")
+
+
+@pytest.fixture
+def redis_client() -> Iterator[redis.Redis]:
+    """A connection to the test Redis database; the test is skipped without one."""
+    r = redis.Redis.from_url(REDIS_URL)
+    try:
+        r.ping()
+    except redis.RedisError:
+        pytest.skip(f"no Redis at {REDIS_URL}")
+    yield r
+    r.close()
 
 
 @pytest.fixture(scope="session")

@@ -4,9 +4,7 @@ previous version is still read from a Redis stream or channel."""
 from __future__ import annotations
 
 import json
-import os
 import uuid
-from collections.abc import Iterator
 from multiprocessing.reduction import ForkingPickler
 
 import msgspec
@@ -27,8 +25,6 @@ from app.workers.messages import (
     decode_results,
     encode,
 )
-
-REDIS_URL = os.environ.get("LOCUS_TEST_REDIS_URL", "redis://127.0.0.1:6379/14")
 
 POSITION = {
     "type": "position",
@@ -128,27 +124,16 @@ def test_json_of_the_previous_version_is_still_read() -> None:
     ]
 
 
-@pytest.fixture
-def client() -> Iterator[redis.Redis]:
-    r = redis.Redis.from_url(REDIS_URL)
-    try:
-        r.ping()
-    except redis.RedisError:
-        pytest.skip(f"no Redis at {REDIS_URL}")
-    yield r
-    r.close()
-
-
-def test_every_message_survives_a_redis_stream_and_channel(client: redis.Redis) -> None:
+def test_every_message_survives_a_redis_stream_and_channel(redis_client: redis.Redis) -> None:
     stream, channel = f"test:stream:{uuid.uuid4().hex}", f"test:results:{uuid.uuid4().hex}"
-    pubsub = client.pubsub(ignore_subscribe_messages=True)
+    pubsub = redis_client.pubsub(ignore_subscribe_messages=True)
     pubsub.subscribe(channel)
     try:
-        client.xadd(stream, {"m": encode(INGEST)})
-        [(_, fields)] = client.xrange(stream)
+        redis_client.xadd(stream, {"m": encode(INGEST)})
+        [(_, fields)] = redis_client.xrange(stream)
         assert decode_ingest(fields[b"m"]) == INGEST
 
-        client.publish(channel, encode(RESULTS))
+        redis_client.publish(channel, encode(RESULTS))
         item = None
         for _ in range(50):
             item = pubsub.get_message(timeout=0.1)
@@ -158,7 +143,7 @@ def test_every_message_survives_a_redis_stream_and_channel(client: redis.Redis) 
         assert decode_results(item["data"]) == RESULTS
     finally:
         pubsub.close()
-        client.delete(stream)
+        redis_client.delete(stream)
 
 
 def test_numpy_scalars_in_a_position_are_carried_as_python_numbers() -> None:

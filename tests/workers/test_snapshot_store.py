@@ -3,45 +3,30 @@ alone, still resumes its own site's device and no other."""
 
 from __future__ import annotations
 
-import os
 import uuid
-from collections.abc import Iterator
 from typing import cast
 
-import pytest
 import redis
 from sqlalchemy.orm import Session
 
 from app.workers.snapshot_store import RedisSnapshots, redis_snapshot_key
 
-REDIS_URL = os.environ.get("LOCUS_TEST_REDIS_URL", "redis://127.0.0.1:6379/14")
 NO_DB = cast(Session, None)
 """Redis snapshots use no database session."""
 
 
-@pytest.fixture
-def client() -> Iterator[redis.Redis]:
-    r = redis.Redis.from_url(REDIS_URL)
-    try:
-        r.ping()
-    except redis.RedisError:
-        pytest.skip(f"no Redis at {REDIS_URL}")
-    yield r
-    r.close()
-
-
-def test_each_site_keeps_its_own_snapshot_of_the_same_device_id(client: redis.Redis) -> None:
-    store, device = RedisSnapshots(client), f"tag-{uuid.uuid4().hex[:8]}"
+def test_each_site_keeps_its_own_snapshot_of_the_same_device_id(redis_client: redis.Redis) -> None:
+    store, device = RedisSnapshots(redis_client), f"tag-{uuid.uuid4().hex[:8]}"
     store.save(NO_DB, ("a", device), 1, b"of a")
     store.save(NO_DB, ("b", device), 2, b"of b")
     assert store.load(NO_DB, ("a", device)) == b"of a"
     assert store.load(NO_DB, ("b", device)) == b"of b"
-    client.delete(redis_snapshot_key(("a", device)), redis_snapshot_key(("b", device)))
+    redis_client.delete(redis_snapshot_key(("a", device)), redis_snapshot_key(("b", device)))
 
 
-def test_a_snapshot_from_before_sites_resumes_only_its_own_site(client: redis.Redis) -> None:
-    store, device = RedisSnapshots(client), f"tag-{uuid.uuid4().hex[:8]}"
-    client.hset(f"locus:snap:{device}", mapping={"site": "a", "t": 1, "blob": b"legacy"})
+def test_a_snapshot_from_before_sites_resumes_only_its_own_site(redis_client: redis.Redis) -> None:
+    store, device = RedisSnapshots(redis_client), f"tag-{uuid.uuid4().hex[:8]}"
+    redis_client.hset(f"locus:snap:{device}", mapping={"site": "a", "t": 1, "blob": b"legacy"})
     assert store.load(NO_DB, ("a", device)) == b"legacy"
     assert store.load(NO_DB, ("b", device)) is None
-    client.delete(f"locus:snap:{device}")
+    redis_client.delete(f"locus:snap:{device}")
