@@ -201,6 +201,16 @@ class EmissionModel:
         # tempered: w ln L
         return p.emission_weight * ll
 
+    def _floor_distances(self, f: int, tx: np.ndarray, rssi: np.ndarray) -> np.ndarray | None:
+        """Return the scan's distance to each survey scan of map ``f`` (dB).
+
+        None without survey scans or when the scan shares nothing with the floor's.
+        """
+        if self.references is None:
+            return None
+        d = self._distances(tx, rssi)[self.ref_blocks[f]]
+        return d if np.isfinite(d).any() else None
+
     def scan_neighbours(
         self, f: int, tx: np.ndarray, rssi: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -208,10 +218,8 @@ class EmissionModel:
 
         None without survey scans or when the scan shares nothing with the floor's.
         """
-        if self.references is None:
-            return None
-        d = self._distances(tx, rssi)[self.ref_blocks[f]]
-        if not np.isfinite(d).any():
+        d = self._floor_distances(f, tx, rssi)
+        if d is None or self.references is None:
             return None
         return self.references.neighbours(d, self.ref_blocks[f])
 
@@ -234,8 +242,8 @@ class EmissionModel:
             Point indices to evaluate (default every point of the map).
         """
         p = self.params
-        near = self.scan_neighbours(f, tx, rssi)
-        if near is None or p.fix_nats == 0.0:
+        near = self.scan_neighbours(f, tx, rssi) if p.fix_nats != 0.0 else None
+        if near is None:
             return None
         centres, weight = near
         xy = self.xy[f] if points is None else self.xy[f][points]
@@ -277,10 +285,8 @@ class EmissionModel:
 
         None without survey scans or when the scan shares nothing with the floor's.
         """
-        if self.references is None:
-            return None
-        d = self._distances(tx, rssi)[self.ref_blocks[f]]
-        return float(d.min()) if np.isfinite(d).any() else None
+        d = self._floor_distances(f, tx, rssi)
+        return None if d is None else float(d.min())
 
     def knn(self, f: int, tx: np.ndarray, rssi: np.ndarray, k: int) -> np.ndarray:
         """Return the weighted mean position (m) of the k nearest fingerprints on map ``f``.
@@ -288,10 +294,9 @@ class EmissionModel:
         With survey scans, the nearest are scans of the map's floor weighted as
         the per-scan k-NN weighs them; otherwise the map's pooled points.
         """
-        if self.references is not None:
-            d = self._distances(tx, rssi)[self.ref_blocks[f]]
-            if np.isfinite(d).any():
-                return self.references.weighted_mean(d, self.ref_blocks[f], k)
+        d = self._floor_distances(f, tx, rssi)
+        if d is not None and self.references is not None:
+            return self.references.weighted_mean(d, self.ref_blocks[f], k)
         d2 = self.fingerprints.sq_distances(tx, rssi)
         start = sum(m.n_points for m in self.maps[:f])
         d = np.sqrt(d2[start : start + self.maps[f].n_points])
