@@ -125,7 +125,10 @@ def candidate_results(
         model = EmissionModel(maps, params)
         out.append([replay_walk(model, params, pdr, walk) for walk in walks])
     scored = [all(results[i] is not None for results in out) for i in range(len(walks))]
-    return [[r for r, ok in zip(results, scored, strict=True) if ok and r] for results in out]
+    return [
+        [r for r, ok in zip(results, scored, strict=True) if ok and r is not None]
+        for results in out
+    ]
 
 
 def calibrate_radius(
