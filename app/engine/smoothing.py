@@ -7,9 +7,9 @@ the track p minimising
     Σ_i |p_i - z_i|² / σ_i²  +  Σ_i |p_{i+1} - p_i - Δo_i|² / m_i²
 
 where z_i are the filter's positions with their standard deviation σ_i
-(from the 68% radius), Δo_i the displacement the steps measured between
-them (odometry) and m_i = a + b Δt_i its error, growing with the time
-between the two (a walker's step length and heading drift). Without
+(from the 68% radius, times ``fix_scale``), Δo_i the displacement the steps
+measured between them (odometry) and m_i = a + b Δt_i its error, growing with
+the time between the two (a walker's step length and heading drift). Without
 odometry between two positions (no steps counted) the walker may have moved
 anywhere a walking speed allows. The normal equations are tridiagonal, one
 banded solve per coordinate. Following the strongest smartphone pipelines on
@@ -49,6 +49,13 @@ class SmootherParams:
         one it refines (older ones no longer move it).
     fix_floor_m : float
         No filter position is trusted to better than this (m, one σ).
+    fix_scale : float
+        Factor on each position's σ (its 68% radius over the 2-D 68%
+        quantile). A filter's positions are not independent fixes: each
+        already carries the scans before it, so weighing them as if they were
+        counts the same evidence many times and pulls the track onto the
+        filter's own errors. A site's radio-map build chooses it on replayed
+        held-out walks, apart for the fixed lag and the full pass.
     motion_std_m : float
         a: error (m) of any odometry displacement, however short.
     motion_std_per_s : float
@@ -61,6 +68,7 @@ class SmootherParams:
     lag_ms: int = 4000
     window_ms: int = 30_000
     fix_floor_m: float = 1.0
+    fix_scale: float = 1.0
     motion_std_m: float = 0.3
     motion_std_per_s: float = 0.3
     free_speed_mps: float = 1.5
@@ -101,7 +109,7 @@ def smooth_positions(
         params.motion_std_m + params.free_speed_mps * dt,
     )
     step = np.where(known[:, None], step, 0.0)
-    w_fix = 1.0 / np.maximum(sigma, params.fix_floor_m) ** 2
+    w_fix = 1.0 / np.maximum(params.fix_scale * sigma, params.fix_floor_m) ** 2
     w_mot = 1.0 / m**2
     # normal equations (W_fix + Dᵀ W_mot D) p = W_fix z + Dᵀ W_mot Δo, D the difference operator
     diag = w_fix.copy()

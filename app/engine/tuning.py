@@ -23,6 +23,7 @@ from app.engine.crossval import CrossValidation
 from app.engine.hmm.params import HmmParams
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, fit_pdr_constants, wrap_deg
+from app.engine.smoothing import SmootherParams
 from app.engine.wknn import WknnParams
 
 HEADING_STD_RANGE_DEG = (5.0, 45.0)
@@ -42,6 +43,11 @@ FIX_WEIGHT_CANDIDATES = (0.0, 10.0, 20.0)
 """Weights of the per-scan k-NN fix in the HMM's emission a build replays held-out walks
 with: on a sparse survey the nearest survey scans can be far from the walker, and the fix
 then pulls the track the wrong way."""
+
+SMOOTHER_FIX_SCALE_CANDIDATES = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+"""Factors on the positions' σ a build scores the fixed-lag and full-pass smoothers with,
+on the replayed held-out walks: how much a filter's positions, each carrying the scans
+before it, may count against the steps between them."""
 
 MAD_TO_STD = 1.4826
 """Scale of the median absolute deviation to a Gaussian standard deviation."""
@@ -77,6 +83,10 @@ class SiteTuning:
         held more than 68% of the replayed walks' errors).
     fix_nats : float
         Weight of the per-scan k-NN fix in the HMM's emission.
+    lag_fix_scale : float
+        Factor on the positions' σ in the fixed-lag smoother.
+    pass_fix_scale : float
+        The same in the full backward pass over stored history.
     """
 
     weinberg_k: float
@@ -89,6 +99,8 @@ class SiteTuning:
     pdr_walks: int = 0
     radius_scale: float = 1.0
     fix_nats: float = HmmParams().fix_nats
+    lag_fix_scale: float = SmootherParams().fix_scale
+    pass_fix_scale: float = SmootherParams().fix_scale
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -138,6 +150,14 @@ class SiteTuning:
             radius_scale=self.radius_scale,
             fix_nats=self.fix_nats,
         )
+
+    def fixed_lag(self, base: SmootherParams | None = None) -> SmootherParams:
+        """Return the live fixed-lag smoother's constants with the site's fix scale."""
+        return replace(base or SmootherParams(), fix_scale=self.lag_fix_scale)
+
+    def full_pass(self, base: SmootherParams | None = None) -> SmootherParams:
+        """Return the history's full-pass smoother constants with the site's fix scale."""
+        return replace(base or SmootherParams(), fix_scale=self.pass_fix_scale)
 
     def wknn(self, base: WknnParams | None = None) -> WknnParams:
         """Return WKNN constants with the site's number of neighbours."""

@@ -20,6 +20,7 @@ from app.devices.service import get_device, sites_of
 from app.keys.deps import PrincipalDep, SiteReaderDep, websocket_principal
 from app.positions import service
 from app.positions.schemas import Position, PositionPage
+from app.sites.assembly import site_tuning
 from app.sites.deps import SiteDep
 from app.state import SessionDep, app_state
 
@@ -80,7 +81,8 @@ def _history(db: Session, site_id: str, device_id: str, query: HistoryQuery) -> 
     rows = rows[: query.limit]
     items = [Position.model_validate(r) for r in rows]
     if query.smoothed:
-        refined = service.full_pass(rows)
+        # weighed as the site's radio-map build found best on its held-out walks
+        refined = service.full_pass(rows, site_tuning(db, site_id).full_pass())
         items = [
             p.model_copy(update={"x": round(x, 3), "y": round(y, 3), "smoothed": True})
             for p, (x, y) in zip(items, refined, strict=True)

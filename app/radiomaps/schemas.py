@@ -85,6 +85,8 @@ class SiteTuningRead(BaseModel):
     pdr_walks: int
     radius_scale: float = 1.0
     fix_nats: float = 10.0
+    lag_fix_scale: float = 1.0
+    pass_fix_scale: float = 1.0
 
 
 class TuningScores(BaseModel):
@@ -92,6 +94,8 @@ class TuningScores(BaseModel):
 
     hmm_walk_error_m_by_weight: dict[str, float | None] = {}
     hmm_walk_error_m_by_fix_weight: dict[str, float | None] = {}
+    fixed_lag_walk_error_m_by_fix_scale: dict[str, float | None] = {}
+    full_pass_walk_error_m_by_fix_scale: dict[str, float | None] = {}
     hmm_walks: int = 0
     wknn_mean_error_m_by_k: dict[str, float | None]
     emission_log_score_by_weight: dict[str, float | None]

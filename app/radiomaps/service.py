@@ -25,7 +25,13 @@ from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
 from app.engine.hmm.params import HmmParams
-from app.engine.hmm.validate import HeldWalk, WalkResult, calibrate_radius, candidate_results
+from app.engine.hmm.validate import (
+    HeldWalk,
+    WalkResult,
+    calibrate_radius,
+    candidate_results,
+    smoother_scores,
+)
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, measure_walk
 from app.engine.radiomap import (
@@ -37,10 +43,12 @@ from app.engine.radiomap import (
     walkable_cells,
 )
 from app.engine.samples import ImuSamples, RssiReadings
+from app.engine.smoothing import SmootherParams
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
     FIX_WEIGHT_CANDIDATES,
     HMM_WEIGHT_CANDIDATES,
+    SMOOTHER_FIX_SCALE_CANDIDATES,
     WKNN_K_CANDIDATES,
     SiteTuning,
     one_standard_error_choice,
@@ -248,8 +256,16 @@ def compute_build(
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1])
     radius = replays.radius_calibration(tuning.emission_weight, tuning.fix_nats)
+    smoothers: dict[str, dict[float, list[float]]] = {}
     if radius is not None:
         tuning = replace(tuning, radius_scale=radius[0], accuracy_floor_m=radius[1])
+        smoothers = replays.smoother_scores(tuning.emission_weight, tuning.fix_nats, radius)
+        default = SmootherParams().fix_scale
+        tuning = replace(
+            tuning,
+            lag_fix_scale=one_standard_error_choice(smoothers["fixed_lag"], default),
+            pass_fix_scale=one_standard_error_choice(smoothers["full_pass"], default),
+        )
     if not tune:
         defaults = SiteTuning.defaults()
         floor = (
@@ -301,7 +317,7 @@ def compute_build(
         },
         "accuracy": accuracy,
         "tuning": tuning.as_dict(),
-        "tuning_scores": _tuning_scores(validation, replays),
+        "tuning_scores": _tuning_scores(validation, replays, smoothers),
     }
     report(1.0)
     return BuildResult(
@@ -408,6 +424,18 @@ class HmmReplays:
         results = self.results.get((weight, fix))
         return float(np.mean([r.score for r in results])) if results else None
 
+    def smoother_scores(
+        self, weight: float, fix: float, calibration: tuple[float, float]
+    ) -> dict[str, dict[float, list[float]]]:
+        """Return one candidate's walk scores under each smoother, per fix scale, its
+        radius calibrated by ``calibration``."""
+        return smoother_scores(
+            self.results.get((weight, fix), []),
+            calibration,
+            HmmParams().min_accuracy_m,
+            SMOOTHER_FIX_SCALE_CANDIDATES,
+        )
+
     def radius_calibration(self, weight: float, fix: float) -> tuple[float, float] | None:
         """Return the radius scale and floor (m) under which the radius holds 68% of the
         replays' errors; None without replays."""
@@ -430,15 +458,23 @@ def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
 
 
 def _tuning_scores(
-    validation: CrossValidation | None, replays: HmmReplays
+    validation: CrossValidation | None,
+    replays: HmmReplays,
+    smoothers: dict[str, dict[float, list[float]]],
 ) -> dict[str, Any] | None:
     """Return the held-out figure of every candidate the tuning chose among."""
     if validation is None:
         return None
     errors = replays.mean_errors()
+
+    def by_scale(name: str) -> dict[str, float | None]:
+        return {str(c): _r(float(np.mean(v))) for c, v in smoothers.get(name, {}).items() if v}
+
     return {
         "hmm_walk_error_m_by_weight": {str(w): _r(e) for w, e in errors.get("weight", {}).items()},
         "hmm_walk_error_m_by_fix_weight": {str(f): _r(e) for f, e in errors.get("fix", {}).items()},
+        "fixed_lag_walk_error_m_by_fix_scale": by_scale("fixed_lag"),
+        "full_pass_walk_error_m_by_fix_scale": by_scale("full_pass"),
         "hmm_walks": replays.scored,
         "wknn_mean_error_m_by_k": {
             str(k): _r(float(np.mean(h.error_m))) for k, h in validation.by_k.items()

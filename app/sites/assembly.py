@@ -58,7 +58,7 @@ class LoadedSite:
         return bool(len(tx)) and bool(np.isfinite(tx.A + tx.B + tx.sigma).any())
 
 
-def _tuning(db: Session, site_id: str) -> SiteTuning:
+def site_tuning(db: Session, site_id: str) -> SiteTuning:
     """Return the constants the site's latest radio-map build chose (defaults without one).
 
     A build stored before builds chose constants still gives its held-out
@@ -208,7 +208,7 @@ def assemble_site(
         tables["transmitter"], radio_maps = _with_radiomap(
             db, site.id, tables["transmitter"], floor_index
         )
-        tuning = _tuning(db, site.id) if radio_maps else tuning
+        tuning = site_tuning(db, site.id) if radio_maps else tuning
     model = SiteModel(
         site_id=site.id,
         floors=tuple(floors),

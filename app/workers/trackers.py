@@ -58,10 +58,10 @@ class SiteEngines:
 
         The build learned the site's PDR constants (step length, heading
         offset), the HMM's neighbours, emission weight and heading noise,
-        and the accuracy floor: the median held-out error, added in
-        quadrature to the radius each filter computes, since the filters know
-        their own uncertainty under the maps, not how far the maps are from
-        the truth.
+        the fixed-lag smoother's fix scale, and the accuracy floor: the
+        median held-out error, added in quadrature to the radius each filter
+        computes, since the filters know their own uncertainty under the maps,
+        not how far the maps are from the truth.
         """
         tuning = site.tuning
         pdr = tuning.pdr()
@@ -70,6 +70,7 @@ class SiteEngines:
             PositioningParams(pdr=pdr, accuracy_floor_m=tuning.accuracy_floor_m),
             hmm_params=tuning.hmm(),
             pdr_params=pdr,
+            smoother_params=tuning.fixed_lag(),
         )
 
     def warm(self) -> SiteEngines:

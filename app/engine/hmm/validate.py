@@ -12,7 +12,7 @@ they combine.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -21,7 +21,8 @@ from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
 from app.engine.pdr import PdrParams
 from app.engine.radiomap import RadioMap, interpolate_waypoints
-from app.engine.samples import Batch, ImuSamples, RssiReadings
+from app.engine.samples import Batch, Estimate, ImuSamples, RssiReadings
+from app.engine.smoothing import SmootherParams, fixed_lag, smooth_track
 
 WRONG_FLOOR_M = 20.0
 """Error (m) an estimate on a wrong floor counts as: worse than most right-floor errors."""
@@ -72,18 +73,20 @@ def _batches(walk: HeldWalk) -> list[Batch]:
     return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class WalkResult:
     """One held-out walk replayed.
 
     ``score`` is its mean error (m, wrong floors counted as ``WRONG_FLOOR_M``);
     ``error`` and ``radius`` are each right-floor estimate's error and 68%
-    radius (m).
+    radius (m); ``estimates`` what the tracker emitted, for the smoothers.
     """
 
     score: float
     error: np.ndarray
     radius: np.ndarray
+    walk: HeldWalk
+    estimates: tuple[Estimate, ...]
 
 
 def replay_walk(
@@ -94,7 +97,11 @@ def replay_walk(
     An estimate on a wrong floor counts as ``WRONG_FLOOR_M``; None without estimates.
     """
     tracker = HmmTracker(model, params, pdr)
-    estimates = [e for b in _batches(walk) for e in tracker.process(b)]
+    return score_walk(walk, [e for b in _batches(walk) for e in tracker.process(b)])
+
+
+def score_walk(walk: HeldWalk, estimates: Sequence[Estimate]) -> WalkResult | None:
+    """Score a walk's estimates against its waypoints; None if none falls inside their span."""
     if not estimates:
         return None
     t = np.array([e.t for e in estimates], dtype=np.int64)
@@ -106,7 +113,7 @@ def replay_walk(
     radius = np.array([e.accuracy for e in estimates])[inside]
     err = np.hypot(*(xy - truth[inside]).T)
     score = float(np.mean(np.where(floor_ok, err, WRONG_FLOOR_M)))
-    return WalkResult(score, err[floor_ok], radius[floor_ok])
+    return WalkResult(score, err[floor_ok], radius[floor_ok], walk, tuple(estimates))
 
 
 def candidate_results(
@@ -159,3 +166,34 @@ def calibrate_radius(
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if held(1.0, mid) >= coverage else (mid, hi)
     return 1.0, hi
+
+
+def smoother_scores(
+    results: Sequence[WalkResult],
+    calibration: tuple[float, float],
+    min_radius: float,
+    scales: Sequence[float],
+) -> dict[str, dict[float, list[float]]]:
+    """Return each walk's score under the fixed-lag and the full-pass smoother, per fix scale.
+
+    The replays ran without the radius's calibration; the smoothers weigh
+    positions by the radius the server reports, so ``calibration`` (scale,
+    floor) is applied first, as the tracker applies it.
+    """
+    s, f = calibration
+
+    def calibrated(e: Estimate) -> Estimate:
+        # r' = max(r_min, sqrt((s r)² + f²))
+        return replace(e, accuracy=max(min_radius, float(np.hypot(s * e.accuracy, f))))
+
+    tracks = [[calibrated(e) for e in r.estimates] for r in results]
+    out: dict[str, dict[float, list[float]]] = {"fixed_lag": {}, "full_pass": {}}
+    for scale in scales:
+        params = SmootherParams(fix_scale=scale)
+        for name, smooth in (("fixed_lag", fixed_lag), ("full_pass", smooth_track)):
+            scored = [
+                score_walk(r.walk, smooth(track, params))
+                for r, track in zip(results, tracks, strict=True)
+            ]
+            out[name][scale] = [x.score for x in scored if x is not None]
+    return out

@@ -159,7 +159,7 @@ def replay_stages(
             # own odometry, which messages do not carry
             live += [e for e in estimates if not e.smoothed and e.t > session.emitted_t]
             messages += session.emit(estimates, now=0)[0]
-        smoothed = smooth_track(live, engines.smoother_params)
+        smoothed = smooth_track(live, engines.site.tuning.full_pass())
         emitted = estimates_from_positions(messages, floors)
         served = served_track(emitted)
         floor = floors.index(walk.floor)
