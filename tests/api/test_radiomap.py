@@ -20,6 +20,8 @@ from app.datasets.ilc import Walk, fresh_wifi, imu_samples, read_floor, read_wal
 from app.engine.hmm.params import HmmParams
 from app.engine.pdr import detect_steps
 from app.engine.samples import Estimate
+from app.engine.smoothing import SmootherParams
+from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES
 from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.score import estimates_from_positions
 from app.evaluation.metrics import truth_at
@@ -396,6 +398,12 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     # the radius floor is calibrated on those replays: 0 or more, never the WKNN median's
     # stand-in when replays exist
     assert tuning["accuracy_floor_m"] >= 0.0
+    # and on the same replays each smoother's fix scale: every candidate scored, the
+    # chosen one no worse than the default's
+    for stage, key in (("fixed_lag", "lag_fix_scale"), ("full_pass", "pass_fix_scale")):
+        by_scale = {float(c): v for c, v in scores[f"{stage}_walk_error_m_by_fix_scale"].items()}
+        assert set(by_scale) == set(SMOOTHER_FIX_SCALE_CANDIDATES)
+        assert by_scale[tuning[key]] <= by_scale[SmootherParams().fix_scale]
 
 
 @needs_site1

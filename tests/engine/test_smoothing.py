@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from app.engine.samples import Estimate
@@ -118,3 +120,26 @@ def test_the_live_smoother_re_emits_each_position_as_the_fixed_lag_pass_refines_
 def snapshot_roundtrip(state: dict) -> dict:
     """The smoother's state as a device snapshot stores and reads it."""
     return decode(encode(state))
+
+
+def test_filter_positions_whose_errors_persist_count_less_under_a_larger_fix_scale() -> None:
+    """A filter's position carries the scans before it, so its error lasts from one
+    position to the next; weighed as independent fixes the track follows that error,
+    while a larger σ lets the steps average it over a longer stretch."""
+    estimates, truth = _walk(n=240, seed=11, noise_m=0.0)
+    rng = np.random.default_rng(3)
+    drift = np.zeros((len(estimates), 2))
+    for i in range(1, len(estimates)):
+        # an AR(1) error of about 3 m that decorrelates over ~20 positions
+        drift[i] = 0.95 * drift[i - 1] + rng.normal(0.0, 3.0 * np.sqrt(1 - 0.95**2), 2)
+    odometry = truth + np.array([7.0, -3.0])
+    persistent = [
+        replace(e, x=float(p[0]), y=float(p[1]), accuracy=4.5, odometry=(float(o[0]), float(o[1])))
+        for e, p, o in zip(estimates, truth + drift, odometry, strict=True)
+    ]
+    errors = {
+        scale: _error(smooth_track(persistent, SmootherParams(fix_scale=scale)), truth)
+        for scale in (1.0, 4.0)
+    }
+    assert errors[4.0] < 0.8 * errors[1.0]
+    assert errors[1.0] < _error(persistent, truth)

@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from app.engine.hmm.params import HmmParams
-from app.engine.hmm.validate import calibrate_radius
+from app.engine.hmm.validate import (
+    HeldWalk,
+    WalkResult,
+    calibrate_radius,
+    score_walk,
+    smoother_scores,
+)
 from app.engine.pdr_fit import WalkPdr
+from app.engine.samples import Estimate, ImuSamples, RssiReadings
 from app.engine.tuning import (
     HEADING_STD_RANGE_DEG,
     SiteTuning,
@@ -111,3 +120,40 @@ def test_off_is_chosen_only_when_it_beats_every_nearer_candidate() -> None:
     scores[10.0] = (np.asarray(scores[0.0]) + 0.8).tolist()
     scores[20.0] = (np.asarray(scores[0.0]) + 1.5).tolist()
     assert one_standard_error_choice(scores, 10.0) == 0.0
+
+
+def _replayed_walk(seed: int) -> WalkResult:
+    """A straight walk at 1 m/s whose live positions err by a persistent ~3 m."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, 60_000, 500)
+    truth = np.stack([t / 1000.0, np.zeros(t.size)], axis=1)
+    drift = np.cumsum(rng.normal(0.0, 0.5, truth.shape), axis=0)
+    estimates = [
+        Estimate(int(ti), float(p[0]), float(p[1]), 0.0, 0, 90.0, 3.0, 1.0, "hmm", (o[0], o[1]))
+        for ti, p, o in zip(t, truth + drift, truth.tolist(), strict=True)
+    ]
+    waypoints = np.array([[0.0, 0.0, 0.0], [60_000.0, 60.0, 0.0]])
+    walk = HeldWalk(RssiReadings(), ImuSamples(), waypoints, 0)
+    result = score_walk(walk, estimates)
+    assert result is not None
+    return result
+
+
+def test_the_smoothers_are_scored_on_the_radius_the_server_reports() -> None:
+    replays = [_replayed_walk(seed) for seed in range(3)]
+    # a calibrated radius twice the replayed one weighs the positions as a fix scale of 2
+    doubled = smoother_scores(replays, (2.0, 0.0), 1.0, [1.0])
+    plain = smoother_scores(replays, (1.0, 0.0), 1.0, [1.0, 2.0])
+    for stage in ("fixed_lag", "full_pass"):
+        assert len(doubled[stage][1.0]) == len(replays)
+        assert doubled[stage][1.0] == pytest.approx(plain[stage][2.0])
+        # and smoothing a drifting track against exact steps beats the live track
+        assert np.mean(plain[stage][1.0]) < np.mean([r.score for r in replays])
+
+
+def test_the_smoothers_take_the_sites_fix_scales() -> None:
+    tuning = replace(SiteTuning.defaults(), lag_fix_scale=2.0, pass_fix_scale=4.0)
+    assert tuning.fixed_lag().fix_scale == 2.0 and tuning.full_pass().fix_scale == 4.0
+    assert SiteTuning.from_dict(tuning.as_dict()) == tuning
+    # a build stored before the smoothers were tuned weighs positions by their radius
+    assert SiteTuning.from_dict({"fix_nats": 10.0}).full_pass().fix_scale == 1.0
