@@ -44,7 +44,7 @@ FIX_WEIGHT_CANDIDATES = (0.0, 10.0, 20.0)
 with: on a sparse survey the nearest survey scans can be far from the walker, and the fix
 then pulls the track the wrong way."""
 
-SMOOTHER_FIX_SCALE_CANDIDATES = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+SMOOTHER_FIX_SCALE_CANDIDATES = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0)
 """Factors on the positions' σ a build scores the fixed-lag and full-pass smoothers with,
 on the replayed held-out walks: how much a filter's positions, each carrying the scans
 before it, may count against the steps between them."""
