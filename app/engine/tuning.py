@@ -4,11 +4,12 @@ A building differs from the next in ways no default can know: how its
 floor plan is rotated against magnetic north (the PDR heading offset), how
 long its walkers' steps are (Weinberg's K), how far apart its fingerprints
 are in signal space (the number of WKNN neighbours, the HMM's emission
-weight) and how far the fingerprints themselves are from the truth (the
-accuracy floor). A radio-map build chooses each from the site's survey walks
-(walk-level folds: no walk both trains and tests), stores them with the maps,
-and the site's engines read them from there; the defaults only seed the
-choice and stand in where a site has no surveys.
+weight), how far the fingerprints themselves are from the truth (the
+accuracy floor) and how far the tracker's positions may be trusted against
+its steps (the smoothers' fix scales). A radio-map build chooses each from
+the site's survey walks (walk-level folds: no walk both trains and tests),
+stores them with the maps, and the site's engines read them from there; the
+defaults only seed the choice and stand in where a site has no surveys.
 """
 
 from __future__ import annotations

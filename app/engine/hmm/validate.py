@@ -6,7 +6,8 @@ radio map is a test of the tracker itself: replayed in one-second batches
 with each candidate set of constants, its estimates are scored against the
 waypoints. Per-scan scores cannot choose the emission weight: the tracker
 multiplies many correlated scans, and how sure each may be depends on how
-they combine.
+they combine. The same replays, smoothed, choose how far the smoothers may
+trust the tracker's positions against its steps.
 """
 
 from __future__ import annotations
