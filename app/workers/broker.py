@@ -2,11 +2,12 @@
 
 ``MemoryBroker`` is the embedded default: worker processes on this machine
 fed through multiprocessing queues. Like a stream with consumer groups, it
-keeps every published batch until the worker acknowledges it; when a worker
-dies, a supervisor starts a new one on fresh queues and re-delivers every
-unacknowledged batch in order. The new worker resumes its devices from their
-stored snapshots, and re-delivered samples it has already used are counted
-as late, not used twice.
+keeps every published batch until the worker acknowledges it, which the
+worker does once a stored snapshot of the batch's device holds it
+(``app.workers.coverage``); when a worker dies, a supervisor starts a new one
+on fresh queues and re-delivers every unacknowledged batch in order. The new
+worker resumes its devices from their stored snapshots, and re-delivered
+samples it has already used are counted as late, not used twice.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from app.core.config import Settings
-from app.workers.messages import STOP, Done, Ingest, Ready, Result, decode_results, encode
+from app.workers.messages import STOP, Acked, Done, Ingest, Ready, Result, decode_results, encode
 from app.workers.process import worker_main
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,7 @@ class Broker(Protocol):
         ...
 
     def backlog(self, shard: int) -> int:
-        """Return the shard's published, unacknowledged batches."""
+        """Return the shard's published batches not processed yet (the overload measure)."""
         ...
 
     def available(self) -> bool:
@@ -59,7 +60,8 @@ class Broker(Protocol):
 
 
 class _Slot:
-    """One shard's worker process, its queues and its unacknowledged batches (encoded)."""
+    """One shard's worker process, its queues and its unacknowledged batches (encoded);
+    ``processed`` are those of them it has processed (kept until a snapshot holds them)."""
 
     def __init__(self, shard: int) -> None:
         self.shard = shard
@@ -68,6 +70,7 @@ class _Slot:
         self.outbox: Any = None
         self.reader: threading.Thread | None = None
         self.pending: OrderedDict[str, bytes] = OrderedDict()
+        self.processed: set[str] = set()
         self.ready = threading.Event()
 
 
@@ -112,6 +115,7 @@ class MemoryBroker:
                 daemon=True,
             )
             slot.process.start()
+            slot.processed.clear()
             for data in slot.pending.values():
                 slot.inbox.put(data)
         slot.reader = threading.Thread(
@@ -135,8 +139,12 @@ class MemoryBroker:
                 return
             with self._lock:
                 for result in results:
-                    if isinstance(result, Done):
-                        slot.pending.pop(result.batch_id, None)
+                    if isinstance(result, Done) and result.batch_id in slot.pending:
+                        slot.processed.add(result.batch_id)
+                    elif isinstance(result, Acked):
+                        for batch_id in result.batch_ids:
+                            slot.pending.pop(batch_id, None)
+                            slot.processed.discard(batch_id)
             if any(isinstance(r, Ready) for r in results):
                 slot.ready.set()
             self._on_results(results)
@@ -187,8 +195,9 @@ class MemoryBroker:
             slot.inbox.put(data)
 
     def backlog(self, shard: int) -> int:
-        """Return the shard's unacknowledged batches."""
-        return len(self._slots[shard].pending)
+        """Return the shard's batches not processed yet."""
+        slot = self._slots[shard]
+        return len(slot.pending) - len(slot.processed)
 
     def available(self) -> bool:
         """Return True: batches wait in this process for a worker, restarted or not."""

@@ -86,6 +86,11 @@ class DeviceSession:
     The session reads no clock: its owner passes the wall time (``now``, epoch
     milliseconds) to the calls that need it. Zone events wait ``zone_dwell_ms``
     of measurement time on the new side of a zone's edge (``ZoneTracker``).
+
+    ``consumed`` counts the batches this session took in and ``covered`` how
+    many of them its last stored snapshot holds: a broker that acknowledges a
+    batch only once it is covered re-delivers, after a crash, every batch whose
+    samples the lost session held and no snapshot kept.
     """
 
     def __init__(
@@ -101,6 +106,8 @@ class DeviceSession:
         self.buffer: list[tuple[int, str, Sample]] = []
         self.seen: set[int] = set()
         self.snapshot_t = -1
+        self.consumed = 0
+        self.covered = 0
         self.last_seen = now
         self.emitted_t = -1
         self.smoothed_t = -1

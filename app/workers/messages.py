@@ -3,7 +3,8 @@
 The API publishes an :class:`Ingest` per device batch to the device's shard
 (and :data:`STOP` to a worker process at shutdown); a worker answers with
 :class:`Done` per batch, :class:`Emitted` for what silence flushed,
-:class:`Stats` now and then, and :class:`Ready` once it can take batches.
+:class:`Acked` for batches a stored snapshot now holds, :class:`Stats` now
+and then, and :class:`Ready` once it can take batches.
 Each is a msgspec Struct tagged by its ``type`` field, and both brokers carry
 the same msgpack bytes: the API process, where every batch and result passes,
 encodes and decodes them faster than it pickled dicts (a multiprocessing queue
@@ -87,6 +88,12 @@ class Stats(msgspec.Struct, tag="stats", frozen=True):
     update_seconds: float
 
 
+class Acked(msgspec.Struct, tag="acked", frozen=True):
+    """Processed batches that stored snapshots now hold: the broker may forget them."""
+
+    batch_ids: list[str]
+
+
 class Ready(msgspec.Struct, tag="ready", frozen=True):
     """A worker process has built its sites and takes batches."""
 
@@ -95,7 +102,7 @@ class Ready(msgspec.Struct, tag="ready", frozen=True):
 
 Inbound = Ingest | Stop
 """What a worker reads."""
-Result = Done | Emitted | Stats | Ready
+Result = Done | Emitted | Stats | Ready | Acked
 """What a worker answers."""
 
 

@@ -12,7 +12,8 @@ from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
 from app.core.logging import configure_logging
 from app.core.time import now_ms
-from app.workers.messages import Done, Ingest, Ready, Stop, decode_inbound, encode
+from app.workers.coverage import CoverageLedger
+from app.workers.messages import Acked, Done, Ingest, Ready, Result, Stop, decode_inbound, encode
 from app.workers.shard import Shard
 from app.workers.sites import SiteCache
 
@@ -68,21 +69,31 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
     sites.poll(wait=True)
     shard = Shard(shard=shard_id, settings=settings, sessions=sessions, clock=now_ms, sites=sites)
     outbox.put(encode([Ready(shard_id)]))
+    ledger: CoverageLedger[str] = CoverageLedger()
     last_stats = 0.0
     while not stopping:
         drained = _drain(inbox, timeout=0.05, most=settings.worker_max_messages)
         inbound = [decode_inbound(data) for data in drained]
         stopping = stopping or any(isinstance(m, Stop) for m in inbound)
         messages = [m for m in inbound if isinstance(m, Ingest)]
+        out: list[Result] = []
+        acked: list[str] = []
         if messages:
-            outbox.put(encode(handle_safely(shard, messages)))
-        emitted = shard.tick()
-        if emitted:
-            outbox.put(encode(emitted))
+            done = handle_safely(shard, messages)
+            out += done
+            acked += ledger.hold_batches(shard, [m.batch_id for m in messages], messages, done)
+        out += shard.tick()
+        acked += ledger.release(shard.newly_covered())
+        if acked:
+            out.append(Acked(acked))
+        if out:
+            outbox.put(encode(out))
         sites.poll()
         if time.monotonic() - last_stats >= settings.worker_stats_every_s:
             outbox.put(encode([shard.stats()]))
             last_stats = time.monotonic()
-    outbox.put(encode([*shard.drain(), shard.stats()]))
+    emitted = shard.drain()
+    shard.newly_covered()
+    outbox.put(encode([*emitted, Acked(ledger.release_all()), shard.stats()]))
     sites.close()
     engine.dispose()

@@ -2,7 +2,10 @@
 
 - One stream per shard (``locus:shard:<n>``); API nodes ``XADD`` batches
   (``MAXLEN ~`` bounded) and workers read them with the consumer group
-  ``workers``, acknowledging (``XACK``) only after the positions are stored.
+  ``workers``, acknowledging (``XACK``) an entry only once a stored snapshot
+  of its device holds it (``app.workers.coverage``). Processed entries that
+  wait for it are counted in ``locus:held:<n>``, so the backlog is what is not
+  processed yet.
 - A shard is owned by one worker at a time through a lease
   (``SET locus:lease:<n> <worker> NX PX``), renewed while the worker lives. A
   worker takes at most its fair share (shards / live workers); shards of a
@@ -31,6 +34,7 @@ from app.core.db import make_engine, make_sessionmaker
 from app.core.outages import is_outage, retry_through_outage
 from app.core.time import now_ms
 from app.workers.broker import ResultHandler
+from app.workers.coverage import CoverageLedger
 from app.workers.messages import Ingest, Result, decode_ingest, decode_results, encode
 from app.workers.process import handle_safely
 from app.workers.shard import Shard
@@ -46,6 +50,11 @@ RESULTS = "locus:results"
 def stream_key(shard: int) -> str:
     """Return the stream of a shard."""
     return f"locus:shard:{shard}"
+
+
+def held_key(shard: int) -> str:
+    """Return the count of a shard's processed entries that wait for a snapshot."""
+    return f"locus:held:{shard}"
 
 
 def lease_key(shard: int) -> str:
@@ -161,14 +170,17 @@ class RedisBroker:
                 time.sleep(0.5)
 
     def _watch(self) -> None:
-        # Backlog = entries not yet delivered (lag) + delivered and not acknowledged.
+        # Backlog = entries not yet delivered (lag) + delivered and not acknowledged, less
+        # those processed that wait for a snapshot (a dead worker's count lapses with it).
         while not self._stopping.wait(0.5):
             try:
                 for shard in range(self.shards):
                     groups = self.client.xinfo_groups(stream_key(shard))
                     info = next((g for g in groups if g["name"] in (GROUP, GROUP.encode())), None)
+                    held = int(self.client.get(held_key(shard)) or 0)
                     if info is not None:
-                        self._backlog[shard] = int(info.get("lag") or 0) + int(info["pending"])
+                        pending = max(0, int(info["pending"]) - held)
+                        self._backlog[shard] = int(info.get("lag") or 0) + pending
                     self._owned[shard] = bool(self.client.exists(lease_key(shard)))
             except redis.RedisError as exc:
                 self._went_down(exc, "reading the backlog")
@@ -243,6 +255,7 @@ class RedisWorker:
         self.sessions = make_sessionmaker(engine=self.engine)
         self.snapshots = RedisSnapshots(self.client)
         self.shards: dict[int, Shard] = {}
+        self.ledgers: dict[int, CoverageLedger[bytes]] = {}
         self.sites = SiteCache(settings=settings, sessions=self.sessions)
         self.lease_ms = int(settings.lease_s * 1000)
         self._renew = self.client.register_script(_RENEW)
@@ -268,8 +281,16 @@ class RedisWorker:
                 continue
             log.warning("%s lost shard %d", self.name, shard)
             # Another worker may run the shard already: storing positions or snapshots
-            # now could overwrite its newer ones, so the devices are only let go.
+            # now could overwrite its newer ones, so the devices are only let go, and
+            # their unacknowledged entries are the new owner's to replay.
             self.shards.pop(shard).close()
+            self.ledgers.pop(shard, None)
+        if self.ledgers:
+            # the counts of held entries live as long as the leases do
+            pipe = self.client.pipeline(transaction=False)
+            for shard, ledger in self.ledgers.items():
+                pipe.set(held_key(shard), len(ledger), px=self.lease_ms)
+            pipe.execute()
         live = self._live_workers()
         if time.monotonic() < self._settle_until:
             # just back from a Redis outage: every worker first takes back its own shards
@@ -297,7 +318,8 @@ class RedisWorker:
             sites=self.sites,
             on_storage_wait=self._keep_leases,
         )
-        # entries a previous owner read but never acknowledged are ours now, oldest first
+        self.ledgers[shard] = CoverageLedger()
+        # entries a previous owner read but no snapshot of its held are ours, oldest first
         claimed = 0
         cursor = "0-0"
         while True:
@@ -326,25 +348,42 @@ class RedisWorker:
         self._last_lease = time.monotonic()
 
     def _process(self, shard: int, entries: list[Any]) -> None:
-        messages = [decode_ingest(fields[b"m"]) for _, fields in entries if fields]
+        # an entry without fields was trimmed from the stream before it was claimed
+        acked = [entry_id for entry_id, fields in entries if not fields]
+        kept = [(entry_id, decode_ingest(fields[b"m"])) for entry_id, fields in entries if fields]
+        messages = [message for _, message in kept]
         results = handle_safely(self.shards[shard], messages) if messages else []
+        ledger = self.ledgers[shard]
+        acked += ledger.hold_batches(
+            self.shards[shard], [entry_id for entry_id, _ in kept], messages, results
+        )
+        self._report(shard, list(results), acked)
+
+    def _report(self, shard: int, results: list[Result], acked: list[Any]) -> None:
+        """Publish results and acknowledge the entries stored snapshots now hold."""
+        acked = acked + self.ledgers[shard].release(self.shards[shard].newly_covered())
+        held = len(self.ledgers[shard])
 
         def report() -> None:
             pipe = self.client.pipeline(transaction=False)
             if results:
                 pipe.publish(RESULTS, encode(results))
-            pipe.xack(stream_key(shard), GROUP, *[entry_id for entry_id, _ in entries])
+            if acked:
+                pipe.xack(stream_key(shard), GROUP, *acked)
+            pipe.set(held_key(shard), held, px=self.lease_ms)
             pipe.execute()
 
-        # the positions are stored: acknowledge them once Redis is back (an entry left
-        # pending would be processed again, its positions suppressed as repeats)
+        # the positions are stored: acknowledge once Redis is back (an entry left pending
+        # would be processed again, its positions suppressed as repeats)
         retry_through_outage(report, what=f"{self.name}: acknowledging", on_wait=self._keep_leases)
 
     def _hand_back(self, shard_id: int) -> None:
         """Drain the shard (its devices snapshotted for the next owner) and release its lease."""
-        results = self.shards.pop(shard_id).drain()
-        if results:
-            self.client.publish(RESULTS, encode(results))
+        drained = self.shards[shard_id]
+        results: list[Result] = list(drained.drain())
+        drained.newly_covered()
+        self._report(shard_id, results, self.ledgers[shard_id].release_all())
+        del self.shards[shard_id], self.ledgers[shard_id]
         self._release(keys=[lease_key(shard_id)], args=[self.name])
 
     def run(self, stop: threading.Event) -> None:
@@ -399,12 +438,15 @@ class RedisWorker:
             shard_id = int(name.rsplit(":", 1)[1])
             if shard_id in self.shards:
                 self._process(shard_id, entries)
-        emitted: list[Result] = [m for shard in self.shards.values() for m in shard.tick()]
+        for shard_id, owned in self.shards.items():
+            emitted: list[Result] = list(owned.tick())
+            if emitted or owned.has_newly_covered():
+                self._report(shard_id, emitted, [])
         if time.monotonic() - self._last_stats >= 1.0:
-            emitted += [shard.stats() for shard in self.shards.values()]
+            stats = [shard.stats() for shard in self.shards.values()]
             self._last_stats = time.monotonic()
-        if emitted:
-            self.client.publish(RESULTS, encode(emitted))
+            if stats:
+                self.client.publish(RESULTS, encode(stats))
 
 
 def redis_worker_main(settings_json: str) -> None:

@@ -32,8 +32,8 @@ from app.workers.trackers import BatchEngine, DeviceTracker, SiteEngines
 
 Clock = Callable[[], int]
 """The wall clock in epoch milliseconds."""
-Snapshot = tuple[DeviceSession, int, bytes]
-"""A device, the measurement time of its snapshot, and the snapshot."""
+Snapshot = tuple[DeviceSession, int, int, bytes]
+"""A device, the measurement time of its snapshot, the batches it holds, and the snapshot."""
 T = TypeVar("T")
 
 
@@ -66,6 +66,7 @@ class Shard:
         self.counters: Counter[str] = Counter()
         self.update_seconds = 0.0
         self._scanned_at = 0
+        self._covered: list[DeviceSession] = []
 
     # -- sites and devices -------------------------------------------------------------
 
@@ -156,6 +157,7 @@ class Shard:
                 counts.append((0, 0, 0))
                 continue
             accepted, late, duplicate = device.add(msg.samples, now=now)
+            device.consumed += 1
             self.counters["samples"] += accepted
             self.counters["late"] += late
             self.counters["duplicate"] += duplicate
@@ -314,6 +316,9 @@ class Shard:
         snaps = self._due_snapshots(quiet, force=False) + self._due_snapshots(idle, force=True)
         self._store_flushed(rows, snaps, "storing flushed positions")
         for device in idle:
+            # its snapshot is stored, or it never held a state worth one
+            device.covered = device.consumed
+            self._covered.append(device)
             self._evict(device)
             self.counters["evicted"] += 1
         return results
@@ -345,18 +350,30 @@ class Shard:
             due = device.processed_t - device.snapshot_t >= self.settings.snapshot_every_ms
             if device.tracker is None or device.processed_t < 0 or not (force or due):
                 continue
-            snaps.append((device, device.processed_t, snapshots.encode(device.snapshot())))
+            blob = snapshots.encode(device.snapshot())
+            snaps.append((device, device.processed_t, device.consumed, blob))
         return snaps
 
     def _write_snapshots(self, db: Session, snaps: list[Snapshot]) -> None:
-        for device, t, blob in snaps:
+        for device, t, _, blob in snaps:
             self.store.save(db, device.key, t, blob)
 
     def _saved(self, snaps: list[Snapshot]) -> None:
         """Note the snapshots as stored, once their transaction committed."""
-        for device, t, _ in snaps:
+        for device, t, consumed, _ in snaps:
             device.snapshot_t = t
+            device.covered = consumed
+            self._covered.append(device)
         self.counters["snapshots"] += len(snaps)
+
+    def has_newly_covered(self) -> bool:
+        """Return whether snapshots were stored since the last :meth:`newly_covered`."""
+        return bool(self._covered)
+
+    def newly_covered(self) -> list[DeviceSession]:
+        """Return (and forget) the devices whose snapshots were stored since the last call."""
+        covered, self._covered = self._covered, []
+        return covered
 
     def stats(self) -> Stats:
         """Return counters for the API's metrics."""

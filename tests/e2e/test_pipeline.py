@@ -158,7 +158,8 @@ def test_killed_worker_restarts_and_loses_no_acknowledged_batch(live_server: Liv
         # every acknowledged position is stored, none twice, in time order
         assert {p["t"] for p in acknowledged[d]} <= set(ts)
         assert len(ts) == len(set(ts)) and ts == sorted(ts)
-        # and the device kept producing positions after the kill
+        # and one position a second through the kill: no sample the dead worker held is lost
         assert max(ts) >= walk(40)[-1]["t"] - 1000
+        assert {b - a for a, b in zip(ts, ts[1:], strict=False)} == {1000}, (d, ts)
     metrics = http.get("/metrics").text
     assert 'locus_worker_restarts_total{shard="' in metrics
