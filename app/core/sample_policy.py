@@ -125,6 +125,13 @@ def _screen_one(
             return current, drops
         except ValidationError as exc:
             errors = exc.errors(include_url=False)
+        if drops and all(not e["loc"] for e in errors):
+            # nothing sound is left (an imu sample whose only sensor read NaN): the sample
+            # goes, for its first impossible field, and the body stays
+            first = drops[0]
+            return None, [
+                _drop(kind, index, first["field"], (first["code"], first["reason"]), "sample")
+            ]
         if any(e["type"] not in VALUE_ERRORS for e in errors):
             # a structural fault: leave the item for the body's validation to reject
             return item, []
@@ -318,7 +325,5 @@ def validate_screened(
 
 
 def report(drops: list[Drop]) -> dict[str, Any]:
-    """Return the answer's part about drops: nothing when none, else the list (capped)."""
-    if not drops:
-        return {}
+    """Return the answer's part about drops: the list (capped, empty when none) and the count."""
     return {"dropped": drops[:MAX_REPORTED], "dropped_total": len(drops)}

@@ -36,6 +36,9 @@ async def ingest_batch(
         settings=settings,
         sites=sites,
     )
+    if count == 0:
+        # only cached WiFi repeats, each reported as dropped: nothing to position
+        return {"accepted": 0, "late": 0} | ({"positions": []} if wait else {})
     samples = service.batch_samples(batch)
     key = (batch.site_id, batch.device_id)
     processed = runtime.last_processed_t(key)

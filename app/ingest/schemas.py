@@ -108,8 +108,8 @@ class IngestBatch(BaseModel):
         return self
 
     def max_t(self) -> int:
-        """Return the latest sample time in the batch."""
-        return max(s.t for k in SAMPLE_KINDS for s in getattr(self, k))
+        """Return the latest sample time in the batch (-1 when screening left none)."""
+        return max((s.t for k in SAMPLE_KINDS for s in getattr(self, k)), default=-1)
 
 
 SAMPLE_KINDS = ("wifi", "ble", "imu", "uwb", "uwb_fix", "baro")

@@ -76,6 +76,20 @@ CASES: dict[str, Case] = {
         status=202,
         says="finite_number",
     ),
+    "ingest: an imu sample whose only sensor is NaN, one sound": Case(
+        "POST",
+        "/v1/ingest",
+        _batch(imu=[{"t": T0, "acc": [1, 2, "NaN"]}, {"t": T0 + 20, "acc": [0.1, 0.2, 9.8]}]),
+        status=202,
+        says="finite_number",
+    ),
+    "ingest: only cached WiFi, last heard 5 s before its scan": Case(
+        "POST",
+        "/v1/ingest",
+        _batch(wifi=[{"t": T0, "id": AP, "rssi": -50, "last_seen": T0 - 5000}]),
+        status=202,
+        says="stale",
+    ),
     "ingest: times in seconds": Case(
         "POST",
         "/v1/ingest",

@@ -41,7 +41,13 @@ def test_one_bad_batch_does_not_reject_the_others(
     assert r.status_code == 202, r.text
     results = r.json()["results"]
     assert [x["status"] for x in results] == [202, 422, 202, 404, 422]
-    assert results[0] == {"status": 202, "accepted": 9, "late": 0}
+    assert results[0] == {
+        "status": 202,
+        "accepted": 9,
+        "late": 0,
+        "dropped": [],
+        "dropped_total": 0,
+    }
     assert results[1]["error"]["code"] == "invalid"
     assert results[1]["error"]["details"][0]["loc"] == ["wifi", "0", "rssi"]
     assert "no-such-site" in results[3]["error"]["message"]
@@ -75,7 +81,7 @@ def test_a_batchs_impossible_samples_are_dropped_and_reported_in_its_result(
     batches = [batch(site_id, f"{site_id}-clean"), noisy]
     r = client.post("/v1/ingest/bulk?wait=true", json={"batches": batches}, headers=admin)
     clean, dropped = r.json()["results"]
-    assert "dropped" not in clean and clean["accepted"] == 9
+    assert clean["dropped"] == [] and clean["dropped_total"] == 0 and clean["accepted"] == 9
     assert dropped["status"] == 200 and dropped["accepted"] == 8
     assert dropped["dropped_total"] == 1
     assert dropped["dropped"][0] | {"reason": ""} == {
