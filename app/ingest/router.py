@@ -141,9 +141,10 @@ async def ingest_bulk(
     """Accept many devices' batches (a gateway's); each is validated and processed on its own.
 
     The answer lists one result per batch, in order, as the single ingest would answer it:
-    ``{"status": 202|200, "accepted", "late", "dropped", "dropped_total", "positions"?}`` or ``{"status":
-    4xx, "error"}``. A batch for a site the key may not report to is refused alone (403).
-    The body is refused whole only when its own structure is wrong or it is too large.
+    ``{"status": 202|200, "accepted", "late", "dropped", "dropped_total", "positions"?}``
+    or ``{"status": 4xx, "error"}``. A batch for a site the key may not report to is refused
+    alone (403). The body is refused whole only when its own structure is wrong or it is too
+    large.
     """
     _may_ingest(principal)
     raw = await _read_body(request, state.settings.bulk_max_body_bytes)
