@@ -20,7 +20,9 @@ fi
 pg_url="${LOCUS_TEST_POSTGRES_URL:-postgresql+psycopg://postgres@127.0.0.1:5432/postgres}"
 if .venv/bin/python -c "import sqlalchemy as s, sys; s.create_engine(sys.argv[1]).connect().close()" "$pg_url" 2>/dev/null; then
   echo "== again on PostgreSQL"
-  LOCUS_TEST_POSTGRES_URL="$pg_url" .venv/bin/python -m pytest tests/api tests/e2e "$@"
+  # the storage-fault and Redis-topology tests run on PostgreSQL in the first pass already
+  LOCUS_TEST_POSTGRES_URL="$pg_url" .venv/bin/python -m pytest tests/api tests/e2e \
+    --ignore=tests/e2e/test_storage_faults.py --ignore=tests/e2e/test_redis_topology.py "$@"
 else
   echo "== PostgreSQL not reachable at $pg_url: skipped the PostgreSQL run"
 fi
