@@ -203,7 +203,8 @@ def _emitter(kind: str, coords: list[float], props: dict[str, Any]) -> Emitter:
             raise ValueError("'B' must be positive")
         if sigma is not None and sigma <= 0:
             raise ValueError("'sigma' must be positive")
-        ident = ident.lower() if tech in ("wifi", "ble") else ident
+        # MAC addresses and iBeacon UUIDs are hex: any case names the same transmitter
+        ident = ident.lower()
     return Emitter(kind, ident, float(coords[0]), float(coords[1]), z, tech, A, B, sigma)
 
 

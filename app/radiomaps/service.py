@@ -126,7 +126,7 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
     wifi = samples.get("wifi", ())
     for s, at in zip(wifi, wifi_times(wifi), strict=True):
         t.append(at)
-        ids.append(radio_id("wifi", s["id"]))
+        ids.append(radio_id(s["id"]))
         rssi.append(float(s["rssi"]))
     return SurveyInput(
         survey_id=row.id,

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 
-def radio_id(kind: str, raw: str) -> str:
-    """Return the transmitter table key of a radio sample id of ``kind`` (``wifi`` or ``ble``)."""
-    # MAC addresses are case-insensitive; iBeacon ids are UUID_major_minor as given.
-    return raw.lower() if kind == "wifi" or ":" in raw else raw
+def radio_id(raw: str) -> str:
+    """Return the transmitter table key of a WiFi or BLE sample's id.
+
+    MAC addresses and iBeacon ids (``UUID_major_minor``, the UUID in hex) are both
+    case-insensitive, so the key is the lower-case id, as the floor map stores it.
+    """
+    return raw.lower()

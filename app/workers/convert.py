@@ -24,7 +24,7 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
         items = samples.get(kind, ())
         times = wifi_times(items) if kind == "wifi" else [s["t"] for s in items]
         for s, t in zip(items, times, strict=True):
-            row = site.transmitter_index.get(radio_id(kind, s["id"]))
+            row = site.transmitter_index.get(radio_id(s["id"]))
             if row is None:
                 unknown += 1
                 continue

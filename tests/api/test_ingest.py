@@ -4,13 +4,15 @@ documented 4xx and changes nothing."""
 from __future__ import annotations
 
 import json
+import math
 import time
+import uuid
 
 import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from tests.conftest import ADMIN_KEY
+from tests.conftest import ADMIN_KEY, floor_doc
 
 T0 = 1_700_000_000_000
 AP = ["aa:00:00:00:00:01", "aa:00:00:00:00:02", "aa:00:00:00:00:03"]
@@ -379,3 +381,29 @@ def test_websocket_ingest_needs_a_key(client: TestClient) -> None:
         with client.websocket_connect("/v1/ws/ingest") as ws:
             ws.receive_json()
     assert closed.value.code == 1008
+
+
+def test_transmitter_ids_match_in_any_case(client: TestClient, admin: dict) -> None:
+    # iBeacon UUIDs and MAC addresses are hex: a map that writes them in capitals and a
+    # phone that reports them in lower case (or the other way round) name the same beacons
+    site = f"s-{uuid.uuid4().hex[:8]}"
+    assert client.put(f"/v1/sites/{site}", json={"name": site}, headers=admin).status_code == 201
+    doc = floor_doc()
+    beacons = [
+        ("ibeacon", "FDA50693-A4E2-4FB1-AFCF-C6EB07647825_10073_61418"),
+        ("ble", "AA:BB:CC:00:00:02"),
+        ("ibeacon", "fda50693-a4e2-4fb1-afcf-c6eb07647825_10073_61420"),
+    ]
+    transmitters = [f for f in doc["features"] if f["properties"]["kind"] == "transmitter"]
+    for feature, (tech, ident) in zip(transmitters, beacons, strict=True):
+        feature["properties"] |= {"tech": tech, "id": ident}
+    assert client.put(f"/v1/sites/{site}/floors/G", json=doc, headers=admin).status_code == 201
+    sent = [ident.swapcase() for _, ident in beacons]
+    ble = [{"t": T0, "id": ident, "rssi": -60 - 5 * i} for i, ident in enumerate(sent)]
+    body = {"device_id": "beacon-phone", "site_id": site, "ble": ble}
+    r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
+    assert r.status_code == 200, r.text
+    (position,) = r.json()["positions"]
+    xy = [f["geometry"]["coordinates"][:2] for f in transmitters]
+    # a weighted centroid of all three, not the one beacon whose id matched by case
+    assert min(math.dist((position["x"], position["y"]), b) for b in xy) > 1.0, position
