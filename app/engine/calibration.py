@@ -93,6 +93,10 @@ class CalibrationParams:
         Bounds of A (dBm at 1 m) in the solver.
     position_margin_m : float
         A fitted position stays within the readings' bounding box widened by this (m).
+    ble_window_ms : int
+        BLE advertisements arrive one by one: those a moving receiver heard within one
+        window of this length (ms) are taken as one scan, so that a beacon it did not
+        hear in the window counts as not heard there.
     """
 
     tx_height_m: float = 3.0
@@ -113,6 +117,7 @@ class CalibrationParams:
     b_bounds: tuple[float, float] = (0.5, 80.0)
     a_bounds: tuple[float, float] = (-120.0, 0.0)
     position_margin_m: float = 15.0
+    ble_window_ms: int = 1000
 
 
 @dataclass(frozen=True)

@@ -137,7 +137,13 @@ class Survey:
 
     @staticmethod
     def concat(parts: list[Survey]) -> Survey:
-        """Join surveys, renumbering scans (walk numbers are kept as given)."""
+        """Join surveys, renumbering scans (walk numbers are kept as given); none: empty."""
+        if not parts:
+            no_scan = np.zeros(0, dtype=np.int32)
+            return Survey(
+                np.zeros(0, np.int64), np.zeros((0, 2)), no_scan, no_scan, no_scan, no_scan,
+                np.zeros(0),
+            )  # fmt: skip
         offsets = np.cumsum([0] + [p.n_scans for p in parts])
         return Survey(
             scan_t=np.concatenate([p.scan_t for p in parts]).astype(np.int64),

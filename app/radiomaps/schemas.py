@@ -110,6 +110,9 @@ class BuildSummary(BaseModel):
     surveys: int
     scans: int
     readings: int
+    ble_windows: int = 0
+    """BLE advertisements of the surveys grouped into windows (scans) to calibrate beacons."""
+    ble_readings: int = 0
     transmitters_heard: int
     floors: list[FloorBuild]
     calibration: CalibrationSummary

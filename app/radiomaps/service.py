@@ -83,6 +83,8 @@ class SurveyInput:
     ids: list[str]
     rssi: np.ndarray
     imu: ImuSamples
+    ble: tuple[np.ndarray, list[str], np.ndarray]
+    """The BLE readings (t, ids, RSSI): they calibrate beacons, and make no fingerprint."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,6 +130,7 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
         t.append(at)
         ids.append(radio_id(s["id"]))
         rssi.append(float(s["rssi"]))
+    ble = samples.get("ble", ())
     return SurveyInput(
         survey_id=row.id,
         floor_id=row.floor_id,
@@ -136,6 +139,11 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
         ids=ids,
         rssi=np.array(rssi, dtype=float),
         imu=_sorted_imu(imu_arrays(samples.get("imu", ()))),
+        ble=(
+            np.array([s["t"] for s in ble], dtype=np.int64),
+            [radio_id(s["id"]) for s in ble],
+            np.array([s["rssi"] for s in ble], dtype=float),
+        ),
     )
 
 
@@ -157,23 +165,33 @@ def load_inputs(*, db: Session, site: Site, raster_cell: float) -> BuildInputs:
     return BuildInputs(site=loaded, surveys=surveys)
 
 
-def _located_survey(inputs: BuildInputs) -> tuple[Survey, tuple[str, ...], np.ndarray]:
-    """Return the scans of every survey located on its waypoints, the transmitter ids, and
-    the survey id of each walk number."""
+def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...], np.ndarray]:
+    """Return the WiFi scans of every survey located on its waypoints, its BLE windows
+    located the same way, the transmitter ids, and the survey id of each walk number."""
     site = inputs.site
     map_ids = site.model.transmitters.ids
-    heard = sorted({i for s in inputs.surveys for i in s.ids} - set(map_ids))
-    tx_ids = tuple(map_ids) + tuple(heard)
+    heard = {i for s in inputs.surveys for i in (*s.ids, *s.ble[1])} - set(map_ids)
+    tx_ids = tuple(map_ids) + tuple(sorted(heard))
     index = {tx: i for i, tx in enumerate(tx_ids)}
-    parts = []
+    wifi, ble = [], []
+    window = CALIBRATION.ble_window_ms
     for walk, s in enumerate(inputs.surveys):
+        floor = site.floor_index[s.floor_id]
         tx = np.array([index[i] for i in s.ids], dtype=np.int32)
-        readings = RssiReadings(s.t, tx, s.rssi)
-        parts.append(
-            locate_scans(readings, s.waypoints, floor=site.floor_index[s.floor_id], walk=walk)
+        wifi.append(
+            locate_scans(RssiReadings(s.t, tx, s.rssi), s.waypoints, floor=floor, walk=walk)
         )
+        t, ids, rssi = s.ble
+        if t.size:
+            # every advertisement of a window timed at the window's middle: one scan
+            start = int(t.min())
+            at = start + (t - start) // window * window + window // 2
+            beacons = np.array([index[i] for i in ids], dtype=np.int32)
+            ble.append(
+                locate_scans(RssiReadings(at, beacons, rssi), s.waypoints, floor=floor, walk=walk)
+            )
     survey_ids = np.array([s.survey_id for s in inputs.surveys], dtype=np.int64)
-    return Survey.concat(parts), tx_ids, survey_ids
+    return Survey.concat(wifi), Survey.concat(ble), tx_ids, survey_ids
 
 
 def _r(value: float, digits: int = 3) -> float | None:
@@ -198,11 +216,26 @@ def compute_build(
     site = inputs.site
     if not inputs.surveys:
         raise Conflict(f"site '{site.site_id}' has no surveys on its current floors")
-    survey, tx_ids, _ = _located_survey(inputs)
-    if survey.n_scans == 0 or survey.reading_rssi.size == 0:
+    survey, beacons, tx_ids, _ = _located_survey(inputs)
+    if survey.reading_rssi.size == 0 and beacons.reading_rssi.size == 0:
         raise Conflict(
-            "the surveys hold no WiFi scan within their waypoints' time span",
+            "the surveys hold no WiFi scan and no BLE reading within their waypoints' time span",
             code="no_scans",
+        )
+    tx = site.model.transmitters
+    known = {
+        i: (int(tx.floor[i]), float(tx.xyz[i, 0]), float(tx.xyz[i, 1]), float(tx.xyz[i, 2]))
+        for i in range(len(tx))
+    }
+    beacon_fits = calibrate(beacons, CALIBRATION, known=known) if beacons.n_scans else []
+    if survey.reading_rssi.size == 0:
+        # beacons only: calibrated, with no WiFi fingerprint to map or tune on
+        summary = _summary(
+            inputs, survey, beacons, [], beacon_fits, tx_ids, None, SiteTuning.defaults(), None
+        )
+        report(1.0)
+        return BuildResult(
+            maps={}, fits=beacon_fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
         )
     report(0.1)
     plans = {i: f.plan for i, f in enumerate(site.model.floors)}
@@ -228,12 +261,10 @@ def compute_build(
             }
         )
     report(0.25)
-    tx = site.model.transmitters
-    known = {
-        i: (int(tx.floor[i]), float(tx.xyz[i, 0]), float(tx.xyz[i, 1]), float(tx.xyz[i, 2]))
-        for i in range(len(tx))
-    }
-    fits = calibrate(survey, CALIBRATION, known=known, progress=lambda x: report(0.25 + 0.4 * x))
+    wifi_fits = calibrate(
+        survey, CALIBRATION, known=known, progress=lambda x: report(0.25 + 0.4 * x)
+    )
+    fits = sorted(wifi_fits + beacon_fits, key=lambda f: f.tx)
     report(0.65)
     measured = _measured_walks(inputs)
     replays = HmmReplays(inputs, tx_ids, tune_site(measured, None), hmm_walks if tune else 0)
@@ -296,13 +327,46 @@ def compute_build(
                 "walks": replays.scored,
                 "mean_walk_error_m": _r(replayed),
             }
+    summary = _summary(
+        inputs,
+        survey,
+        beacons,
+        floors,
+        fits,
+        tx_ids,
+        accuracy,
+        tuning,
+        _tuning_scores(validation, replays, smoothers),
+    )
+    report(1.0)
+    return BuildResult(
+        maps=maps, fits=fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
+    )
+
+
+def _summary(
+    inputs: BuildInputs,
+    survey: Survey,
+    beacons: Survey,
+    floors: list[dict[str, Any]],
+    fits: list[TransmitterFit],
+    tx_ids: tuple[str, ...],
+    accuracy: dict[str, Any] | None,
+    tuning: SiteTuning,
+    scores: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """Return a build's summary: what it read, calibrated, mapped, measured and chose."""
+    site = inputs.site
     plausible = [f for f in fits if f.plausible]
-    summary = {
+    heard = np.concatenate([survey.reading_tx, beacons.reading_tx])
+    return {
         "site_id": site.site_id,
         "surveys": len(inputs.surveys),
         "scans": survey.n_scans,
         "readings": int(survey.reading_rssi.size),
-        "transmitters_heard": int(np.unique(survey.reading_tx).size),
+        "ble_windows": beacons.n_scans,
+        "ble_readings": int(beacons.reading_rssi.size),
+        "transmitters_heard": int(np.unique(heard).size),
         "floors": floors,
         "calibration": {
             "calibrated": len(fits),
@@ -317,12 +381,8 @@ def compute_build(
         },
         "accuracy": accuracy,
         "tuning": tuning.as_dict(),
-        "tuning_scores": _tuning_scores(validation, replays, smoothers),
+        "tuning_scores": scores,
     }
-    report(1.0)
-    return BuildResult(
-        maps=maps, fits=fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
-    )
 
 
 class HmmReplays:
