@@ -263,6 +263,7 @@ EVALUATIONS = {
     "pdr": "app.evaluation.pdr_eval",
     "trackfit": "app.evaluation.trackfit_eval",
     "ble-flat": "app.evaluation.ble_flat_eval",
+    "ble-flat-http": "app.evaluation.ble_flat_http",
     "uwb": "app.evaluation.uwb_eval",
     "locator": "app.evaluation.locator_eval",
     "locator-http": "app.evaluation.locator_http",
