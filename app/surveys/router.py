@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from app.core.errors import TooLarge, validation_failed
+from app.core.errors import Invalid, TooLarge, validation_failed
 from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
 from app.core.schemas import LimitQuery, OffsetQuery, Page
@@ -46,6 +46,11 @@ async def create_survey(
     except ValidationError as exc:
         errors = exc.errors(include_url=False)
         raise validation_failed(errors, "survey failed validation") from exc
+    if body.site_id is not None and body.site_id != site.id:
+        raise Invalid(
+            f"the survey names site '{body.site_id}' but is posted to site '{site.id}'",
+            details=[{"loc": ["site_id"], "msg": "another site", "type": "site_mismatch"}],
+        )
     wifi, stale = drop_stale_wifi(body.wifi, settings.wifi_max_age_ms, drops)
     body = body.model_copy(update={"wifi": wifi})
     drops += stale

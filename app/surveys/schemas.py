@@ -37,6 +37,8 @@ class SurveyCreate(BaseModel):
 
     device_id: DeviceIdentifier
     floor_id: Identifier
+    site_id: Identifier | None = None
+    """May repeat the path's site, as an ingest body of the same device carries it."""
     name: Annotated[str, Field(max_length=200)] | None = None
     waypoints: Annotated[list[Waypoint], Field(min_length=1)]
     wifi: list[RadioSample] = Field(default_factory=list)

@@ -17,7 +17,9 @@ from app.surveys.schemas import SurveyCreate
 def create_survey(*, db: Session, site_id: str, body: SurveyCreate) -> SurveyRecord:
     """Store a recording on one of the site's floors, its samples as compressed JSON."""
     require_floor(db=db, site_id=site_id, floor_id=body.floor_id)
-    payload = body.model_dump(exclude={"device_id", "floor_id", "name"}, exclude_none=True)
+    payload = body.model_dump(
+        exclude={"device_id", "floor_id", "site_id", "name"}, exclude_none=True
+    )
     survey = SurveyRecord(
         site_id=site_id,
         floor_id=body.floor_id,

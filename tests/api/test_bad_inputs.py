@@ -214,6 +214,18 @@ CASES: dict[str, Case] = {
         },
         says="clock_skew",
     ),  # fmt: skip
+    "survey: names another site": Case(
+        "POST",
+        f"/v1/sites/{SITE}/surveys",
+        {
+            "device_id": "s",
+            "site_id": "elsewhere",
+            "floor_id": "G",
+            "waypoints": [{"t": T0, "x": 1, "y": 1}, {"t": T0 + 2000, "x": 2, "y": 1}],
+            "wifi": [{"t": T0 + 10, "id": AP, "rssi": -50}],
+        },
+        says="posted to site",
+    ),  # fmt: skip
     "planning: unknown tech": Case(
         "GET", f"/v1/sites/{SITE}/floors/G/accuracy?tech=laser", says="tech"
     ),

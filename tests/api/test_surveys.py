@@ -46,6 +46,17 @@ def test_survey_is_stored_with_counts(client: TestClient, admin: dict, site_id: 
     assert [s["id"] for s in listed["items"]] == [body["id"]] and listed["total"] == 1
 
 
+def test_a_survey_may_name_its_own_site_as_an_ingest_body_does(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    r = client.post(
+        f"/v1/sites/{site_id}/surveys", json=_survey() | {"site_id": site_id}, headers=admin
+    )
+    assert r.status_code == 201, r.text
+    with client.app.state.locus.sessions() as db:
+        assert "site_id" not in survey_samples(db.get(SurveyRecord, r.json()["id"]))
+
+
 def test_bad_surveys_are_rejected(client: TestClient, admin: dict, site_id: str) -> None:
     unordered = _survey()
     unordered["waypoints"].reverse()
