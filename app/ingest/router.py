@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Any, TypeVar
+from typing import Any
 
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ValidationError
+from pydantic import ValidationError
 
 from app.core.errors import (
     ApiError,
@@ -24,7 +24,7 @@ from app.core.errors import (
     validation_failed,
 )
 from app.core.openapi import json_body
-from app.core.sample_policy import report
+from app.core.sample_policy import report, validate_screened
 from app.core.security import Principal
 from app.ingest import flows, service
 from app.ingest.schemas import (
@@ -34,13 +34,13 @@ from app.ingest.schemas import (
     IngestBatch,
     IngestProcessed,
     LocatorBatch,
+    Sighting,
 )
 from app.keys.deps import PrincipalDep, websocket_principal
 from app.state import AppState, RuntimeDep, StateDep, app_state
 from app.workers.runtime import Runtime
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
-M = TypeVar("M", bound=BaseModel)
 
 
 async def _read_body(request: Request, limit: int) -> bytes:
@@ -55,16 +55,25 @@ async def _read_body(request: Request, limit: int) -> bytes:
     return bytes(body)
 
 
-def _parse(model: type[M], raw: bytes | str) -> M:
-    try:
-        return model.model_validate_json(raw)
-    except ValidationError as exc:
-        raise validation_failed(exc.errors(include_url=False)) from exc
-
-
 def _parse_batch(raw: bytes | str, state: AppState) -> tuple[IngestBatch, dict[str, Any]]:
     """Validate a device's batch under the per-sample policy; count and report the drops."""
     batch, drops = service.screen_batch(raw, state.settings)
+    state.metrics.count_drops(drops)
+    return batch, report(drops)
+
+
+def _parse_locator(raw: bytes | str, state: AppState) -> tuple[LocatorBatch, dict[str, Any]]:
+    """Validate a locator's report under the per-sample policy: an impossible sighting
+    goes alone, and is counted and reported."""
+    try:
+        batch, drops = validate_screened(
+            LocatorBatch,
+            raw,
+            {"sightings": Sighting},
+            max_offset_ms=round(state.settings.time_outlier_s * 1000),
+        )
+    except ValidationError as exc:
+        raise validation_failed(exc.errors(include_url=False)) from exc
     state.metrics.count_drops(drops)
     return batch, report(drops)
 
@@ -182,7 +191,7 @@ async def ingest_locator(
     """Accept a locator's sightings of tags; each goes to its tag's filter."""
     _may_ingest(principal)
     raw = await _read_body(request, state.settings.max_body_bytes)
-    batch = _parse(LocatorBatch, raw)
+    batch, dropped = _parse_locator(raw, state)
     result = await flows.ingest_locator(
         batch=batch,
         principal=principal,
@@ -192,7 +201,7 @@ async def ingest_locator(
         wait=wait,
     )
     state.metrics.ingest_samples.labels("locator").inc(len(batch.sightings))
-    return _answer(result, wait)
+    return _answer(result | dropped, wait)
 
 
 @router.websocket("/ws/ingest")

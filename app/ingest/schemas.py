@@ -146,7 +146,7 @@ class LocatorBatch(BaseModel):
 
 class IngestAccepted(BaseModel):
     """Answer to an ingest: samples accepted, how many were too late to use, and what the
-    per-sample policy dropped (absent when nothing was)."""
+    per-sample policy dropped (an empty list when nothing was)."""
 
     accepted: int
     late: int

@@ -155,6 +155,26 @@ CASES: dict[str, Case] = {
         {"site_id": SITE, "locator_id": "L1", "sightings": [{"t": T0, "tag_id": "t"}]},
         says="rssi",
     ),  # fmt: skip
+    "locator: one sighting above 0 dBm, one sound": Case(
+        "POST",
+        "/v1/ingest/locator",
+        {
+            "site_id": SITE,
+            "locator_id": "L1",
+            "sightings": [
+                {"t": T0, "tag_id": "t", "rssi": 7},
+                {"t": T0 + 100, "tag_id": "t", "rssi": -70},
+            ],
+        },
+        status=202,
+        says="less_than_equal",
+    ),  # fmt: skip
+    "locator: only sighting above 0 dBm": Case(
+        "POST",
+        "/v1/ingest/locator",
+        {"site_id": SITE, "locator_id": "L1", "sightings": [{"t": T0, "tag_id": "t", "rssi": 7}]},
+        says="every sample was dropped",
+    ),  # fmt: skip
     "site: id with a space": Case("PUT", "/v1/sites/a%20b", {"name": "x"}, says="pattern"),
     "site: no name": Case("PUT", "/v1/sites/bad-site-17", {}, says="name"),
     "site: name not JSON (text/plain)": Case(
