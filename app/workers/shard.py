@@ -295,7 +295,8 @@ class Shard:
             self._saved(snaps)
 
     def tick(self) -> list[Emitted]:
-        """Flush quiet devices' buffers and filters; evict idle devices (with a snapshot).
+        """Flush quiet devices' buffers and filters and snapshot them; evict idle devices
+        (with a snapshot).
 
         Does nothing within ``silence_scan_every_ms`` of the last scan, unless buffers are
         to be flushed at once (``flush_after_s`` 0).
@@ -313,7 +314,8 @@ class Shard:
         if not quiet and not idle:
             return []
         results, rows = self._flush(quiet, now)
-        snaps = self._due_snapshots(quiet, force=False) + self._due_snapshots(idle, force=True)
+        # a device gone quiet is snapshotted once: the batches it holds are then covered
+        snaps = self._due_snapshots(quiet + idle, force=True)
         self._store_flushed(rows, snaps, "storing flushed positions")
         for device in idle:
             # its snapshot is stored, or it never held a state worth one

@@ -88,6 +88,24 @@ def test_a_batch_is_acknowledged_only_once_a_stored_snapshot_holds_it(
     assert len(ledger) == 0
 
 
+def test_a_device_gone_quiet_is_snapshotted_and_its_batches_acknowledged(
+    settings: Settings, office_sessions: sessionmaker[Session], office: LoadedSite
+) -> None:
+    clock = Clock()
+    shard = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
+    ledger: CoverageLedger[str] = CoverageLedger()
+    # it stops a second after a periodic snapshot: none would be due at its flush
+    messages = _messages(office, f"quiet-{uuid.uuid4().hex[:8]}", seconds=8)
+    acked = _run(shard, ledger, messages)
+    assert len(ledger) > 0
+
+    clock.advance(settings.flush_after_s)
+    shard.tick()
+    acked += ledger.release(shard.newly_covered())
+
+    assert acked == [m.batch_id for m in messages] and len(ledger) == 0
+
+
 def test_the_next_worker_replays_what_was_not_acknowledged_and_stores_every_window(
     settings: Settings, office_sessions: sessionmaker[Session], office: LoadedSite
 ) -> None:
