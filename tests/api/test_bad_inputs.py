@@ -40,6 +40,20 @@ def _batch(**changes: Any) -> dict[str, Any]:
     return body | changes
 
 
+def _survey(**changes: Any) -> dict[str, Any]:
+    body = {
+        "device_id": "s",
+        "floor_id": "G",
+        "waypoints": [{"t": T0, "x": 1, "y": 1}, {"t": T0 + 2000, "x": 2, "y": 1}],
+        "wifi": [{"t": T0 + 10, "id": AP, "rssi": -50}],
+    }
+    return body | changes
+
+
+def _locator(*sightings: dict[str, Any]) -> dict[str, Any]:
+    return {"site_id": SITE, "locator_id": "L1", "sightings": list(sightings)}
+
+
 def _open_ring() -> dict[str, Any]:
     doc = floor_doc()
     doc["features"][0]["geometry"]["coordinates"] = [[[0, 0], [20, 0], [20, 10]]]
@@ -150,31 +164,21 @@ CASES: dict[str, Case] = {
     "bulk: batches not a list": Case("POST", "/v1/ingest/bulk", {"batches": {}}, says="batches"),
     "bulk: no batches": Case("POST", "/v1/ingest/bulk", {"batches": []}, says="batches"),
     "locator: sighting without RSSI": Case(
-        "POST",
-        "/v1/ingest/locator",
-        {"site_id": SITE, "locator_id": "L1", "sightings": [{"t": T0, "tag_id": "t"}]},
-        says="rssi",
-    ),  # fmt: skip
+        "POST", "/v1/ingest/locator", _locator({"t": T0, "tag_id": "t"}), says="rssi"
+    ),
     "locator: one sighting above 0 dBm, one sound": Case(
         "POST",
         "/v1/ingest/locator",
-        {
-            "site_id": SITE,
-            "locator_id": "L1",
-            "sightings": [
-                {"t": T0, "tag_id": "t", "rssi": 7},
-                {"t": T0 + 100, "tag_id": "t", "rssi": -70},
-            ],
-        },
+        _locator({"t": T0, "tag_id": "t", "rssi": 7}, {"t": T0 + 100, "tag_id": "t", "rssi": -70}),
         status=202,
         says="less_than_equal",
-    ),  # fmt: skip
+    ),
     "locator: only sighting above 0 dBm": Case(
         "POST",
         "/v1/ingest/locator",
-        {"site_id": SITE, "locator_id": "L1", "sightings": [{"t": T0, "tag_id": "t", "rssi": 7}]},
+        _locator({"t": T0, "tag_id": "t", "rssi": 7}),
         says="every sample was dropped",
-    ),  # fmt: skip
+    ),
     "site: id with a space": Case("PUT", "/v1/sites/a%20b", {"name": "x"}, says="pattern"),
     "site: no name": Case("PUT", "/v1/sites/bad-site-17", {}, says="name"),
     "site: name not JSON (text/plain)": Case(
@@ -226,26 +230,12 @@ CASES: dict[str, Case] = {
     "survey: waypoint an hour off": Case(
         "POST",
         f"/v1/sites/{SITE}/surveys",
-        {
-            "device_id": "s",
-            "floor_id": "G",
-            "waypoints": [{"t": T0, "x": 1, "y": 1}, {"t": T0 + 7_200_000, "x": 2, "y": 1}],
-            "wifi": [{"t": T0 + 10, "id": AP, "rssi": -50}],
-        },
+        _survey(waypoints=[{"t": T0, "x": 1, "y": 1}, {"t": T0 + 7_200_000, "x": 2, "y": 1}]),
         says="clock_skew",
-    ),  # fmt: skip
+    ),
     "survey: names another site": Case(
-        "POST",
-        f"/v1/sites/{SITE}/surveys",
-        {
-            "device_id": "s",
-            "site_id": "elsewhere",
-            "floor_id": "G",
-            "waypoints": [{"t": T0, "x": 1, "y": 1}, {"t": T0 + 2000, "x": 2, "y": 1}],
-            "wifi": [{"t": T0 + 10, "id": AP, "rssi": -50}],
-        },
-        says="posted to site",
-    ),  # fmt: skip
+        "POST", f"/v1/sites/{SITE}/surveys", _survey(site_id="elsewhere"), says="posted to site"
+    ),
     "planning: unknown tech": Case(
         "GET", f"/v1/sites/{SITE}/floors/G/accuracy?tech=laser", says="tech"
     ),
