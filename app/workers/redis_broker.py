@@ -174,12 +174,12 @@ class RedisBroker:
         # those processed that wait for a snapshot (a dead worker's count lapses with it).
         while not self._stopping.wait(0.5):
             try:
+                held = self.client.mget([held_key(shard) for shard in range(self.shards)])
                 for shard in range(self.shards):
                     groups = self.client.xinfo_groups(stream_key(shard))
                     info = next((g for g in groups if g["name"] in (GROUP, GROUP.encode())), None)
-                    held = int(self.client.get(held_key(shard)) or 0)
                     if info is not None:
-                        pending = max(0, int(info["pending"]) - held)
+                        pending = max(0, int(info["pending"]) - int(held[shard] or 0))
                         self._backlog[shard] = int(info.get("lag") or 0) + pending
                     self._owned[shard] = bool(self.client.exists(lease_key(shard)))
             except redis.RedisError as exc:
