@@ -19,7 +19,10 @@ class PositionRecord(Base):
     """
 
     __tablename__ = "positions"
-    __table_args__ = (Index("ix_positions_site_device_t", "site_id", "device_id", "t"),)
+    # a position is stored once, however often its batch was processed
+    __table_args__ = (
+        Index("ix_positions_site_device_t", "site_id", "device_id", "t", "smoothed", unique=True),
+    )
 
     id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
     site_id: Mapped[str] = mapped_column(String(64))

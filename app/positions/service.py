@@ -2,14 +2,28 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from sqlalchemy import Select, func, or_, select
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from app.engine.samples import Estimate
 from app.engine.smoothing import SmootherParams, smooth_track
 from app.positions.models import PositionRecord
+
+
+def store(db: Session, rows: Sequence[Mapping[str, Any]]) -> None:
+    """Insert position rows, skipping any already stored for its device, time and kind.
+
+    A batch can be positioned twice (re-delivered after its worker died, or run
+    by a worker that lost its shard mid-round): the history keeps one of each.
+    """
+    if not rows:
+        return
+    dialect = postgresql if db.get_bind().dialect.name == "postgresql" else sqlite
+    db.execute(dialect.insert(PositionRecord).on_conflict_do_nothing(), list(rows))
 
 
 def latest(*, db: Session, site_id: str, device_id: str) -> PositionRecord | None:

@@ -10,7 +10,6 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-from sqlalchemy import insert
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
@@ -18,7 +17,7 @@ from app.core.db import session_scope
 from app.core.jobs import tend_jobs
 from app.core.time import now_ms, utcnow
 from app.devices.service import touch_devices
-from app.positions.models import PositionRecord
+from app.positions.service import store as store_positions
 from app.tracks.fitting import run_fit
 from app.tracks.models import Track
 
@@ -147,7 +146,7 @@ class TrackFitter:
                 "computed_at": now_ms(),
                 "smoothed": False,
             }
-            db.execute(insert(PositionRecord), [{k: v for k, v in position.items() if k != "type"}])
+            store_positions(db, [{k: v for k, v in position.items() if k != "type"}])
             key = (track.site_id, track.device_id)
             touch_devices(db=db, heard=[(key, last["t"])], now=position["computed_at"])
             return position

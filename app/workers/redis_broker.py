@@ -261,6 +261,7 @@ class RedisWorker:
         self._renew = self.client.register_script(_RENEW)
         self._release = self.client.register_script(_RELEASE)
         self._last_lease = 0.0
+        self._last_manage = 0.0
         self._last_stats = 0.0
         self._settle_until = 0.0
 
@@ -270,9 +271,20 @@ class RedisWorker:
         self.client.set(f"locus:worker:{self.name}", 1, px=self.lease_ms)
         return max(1, sum(1 for _ in self.client.scan_iter("locus:worker:*", count=1000)))
 
-    def _manage_leases(self) -> None:
-        for shard in list(self.shards):
-            if self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms]):
+    def _renew_owned(self) -> None:
+        """Renew the leases of the owned shards and let go of any another worker holds now.
+
+        Run before every read: a worker stalled past its lease (a long take, a
+        loaded machine) must not read entries of a shard that is no longer its own.
+        """
+        if not self.shards:
+            return
+        owned = list(self.shards)
+        pipe = self.client.pipeline(transaction=False)
+        for shard in owned:
+            self._renew(keys=[lease_key(shard)], args=[self.name, self.lease_ms], client=pipe)
+        for shard, renewed in zip(owned, pipe.execute(), strict=True):
+            if renewed:
                 continue
             # A lease that lapsed while Redis was away and that nobody took since is still
             # ours, and so are the devices' buffered samples: keep the shard.
@@ -285,6 +297,10 @@ class RedisWorker:
             # their unacknowledged entries are the new owner's to replay.
             self.shards.pop(shard).close()
             self.ledgers.pop(shard, None)
+        self._last_lease = time.monotonic()
+
+    def _manage_leases(self) -> None:
+        """Take a fair share of the shards and hand back what is over it."""
         if self.ledgers:
             # the counts of held entries live as long as the leases do
             pipe = self.client.pipeline(transaction=False)
@@ -348,6 +364,8 @@ class RedisWorker:
         self._last_lease = time.monotonic()
 
     def _process(self, shard: int, entries: list[Any]) -> None:
+        # a long round (a take's backlog, a loaded machine) must not let the leases lapse
+        self._keep_leases()
         # an entry without fields was trimmed from the stream before it was claimed
         acked = [entry_id for entry_id, fields in entries if not fields]
         kept = [(entry_id, decode_ingest(fields[b"m"])) for entry_id, fields in entries if fields]
@@ -418,9 +436,10 @@ class RedisWorker:
     def _round(self, stop: threading.Event) -> None:
         """Renew leases when due, process what the owned streams hold, flush quiet devices."""
         self.sites.poll()
-        if time.monotonic() - self._last_lease >= self.settings.lease_s / 3:
+        if time.monotonic() - self._last_manage >= self.settings.lease_s / 3:
             self._manage_leases()
-            self._last_lease = time.monotonic()
+            self._last_manage = time.monotonic()
+        self._renew_owned()
         if not self.shards:
             stop.wait(0.2)
             return

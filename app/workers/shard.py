@@ -13,7 +13,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from typing import TypeVar
 
-from sqlalchemy import func, insert, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
@@ -23,6 +23,7 @@ from app.core.outages import retry_through_outage
 from app.devices.service import touch_devices
 from app.engine.samples import Batch, Estimate
 from app.positions.models import PositionRecord
+from app.positions.service import store as store_positions
 from app.workers import snapshots
 from app.workers.device import DeviceSession, public
 from app.workers.messages import Done, Emitted, Ingest, Position, Stats, ZoneEvent
@@ -91,13 +92,15 @@ class Shard:
             device.restore(snapshots.decode(stored))
             # Re-delivered batches rebuild the filter from an older snapshot; what was
             # already stored must not be emitted twice.
-            last = db.scalar(
-                select(func.max(PositionRecord.t)).where(
-                    PositionRecord.site_id == site_id, PositionRecord.device_id == device_id
-                )
+            last = dict(
+                db.execute(
+                    select(PositionRecord.smoothed, func.max(PositionRecord.t))
+                    .where(PositionRecord.site_id == site_id, PositionRecord.device_id == device_id)
+                    .group_by(PositionRecord.smoothed)
+                ).all()
             )
-            if last is not None:
-                device.emitted_t = max(device.emitted_t, int(last))
+            device.emitted_t = max(device.emitted_t, int(last.get(False, -1)))
+            device.smoothed_t = max(device.smoothed_t, int(last.get(True, -1)))
             self.counters["restored"] += 1
         self.devices[device.key] = device
         return device
@@ -192,8 +195,7 @@ class Shard:
         snaps = self._due_snapshots(touched, force=False)
 
         def write(db: Session) -> None:
-            if rows:
-                db.execute(insert(PositionRecord), [_row(p) for p in rows])
+            store_positions(db, [_row(p) for p in rows])
             touch_devices(db=db, heard=heard, now=now)
             self._write_snapshots(db, snaps)
 
@@ -286,8 +288,7 @@ class Shard:
         """Store flushed positions and snapshots, through an outage."""
 
         def write(db: Session) -> None:
-            if rows:
-                db.execute(insert(PositionRecord), [_row(p) for p in rows])
+            store_positions(db, [_row(p) for p in rows])
             self._write_snapshots(db, snaps)
 
         if rows or snaps:

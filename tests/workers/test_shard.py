@@ -9,10 +9,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.config import Settings
 from app.core.db import session_scope
+from app.positions.models import PositionRecord
 from app.sites.assembly import LoadedSite
 from app.workers import snapshots
 from app.workers.device import DeviceSession, public
@@ -195,6 +197,34 @@ def test_the_next_shard_resumes_a_drained_device_from_its_snapshot(
     ts = [p["t"] for p in _positions(results, tag)]
     assert ts == sorted(set(ts)), "no position is emitted twice"
     assert ts[-1] >= uploads[-1][0]["t"] - 2000
+
+
+def test_a_batch_positioned_by_two_owners_is_stored_once(
+    settings: Settings,
+    office_sessions: sessionmaker[Session],
+    office: LoadedSite,
+    clock: Clock,
+) -> None:
+    """A worker that stalled past its lease and the one that took its shard both run the
+    same uploads, neither seeing the other's positions first: the history keeps one."""
+    tag = _id("tag")
+    uploads = per_second(uwb_ranges(8))
+    stale = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
+    owner = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
+    answered: list[Done | Emitted] = []
+    for samples in uploads:
+        for shard in (stale, owner):
+            answered += shard.handle([_message(office, tag, "uwb", samples)])
+
+    emitted = [p["t"] for p in _positions(answered, tag)]
+    assert len(emitted) > len(set(emitted)), "both owners positioned the uploads"
+    with session_scope(office_sessions) as db:
+        stored = db.scalars(
+            select(PositionRecord.t).where(
+                PositionRecord.site_id == SITE_ID, PositionRecord.device_id == tag
+            )
+        ).all()
+    assert sorted(stored) == sorted(set(emitted))
 
 
 def test_what_a_shard_answers_is_plain_data_the_brokers_carry_unchanged(
