@@ -21,7 +21,7 @@ transmitter always heard there is now absent.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -396,6 +396,39 @@ def walkable_cells(plan: FloorPlan, cell: float) -> tuple[np.ndarray, np.ndarray
     mask = np.zeros(shape, dtype=bool)
     mask[np.clip(ij[:, 1], 0, shape[0] - 1), np.clip(ij[:, 0], 0, shape[1] - 1)] = True
     return plan.origin.copy(), mask
+
+
+def extend_onto_plan(radio_map: RadioMap, plan: FloorPlan, reach_m: float) -> RadioMap:
+    """Return the map with walkable cells within ``reach_m`` of a survey scan as points too.
+
+    The added points come after the map's own, with no pooled statistics. A
+    tracker confined to the surveyed corridors cannot follow a walker the
+    survey never passed; the added points let it, scored by the scans nearest
+    them. Unchanged when the map has no scans, ``reach_m`` adds nothing, or the
+    map was built on another grid than this plan's.
+    """
+    refs = radio_map.references
+    if refs is None or refs.xy.shape[0] == 0 or reach_m <= 0:
+        return radio_map
+    origin, mask = walkable_cells(plan, radio_map.cell)
+    if mask.shape != radio_map.shape or not np.allclose(origin, radio_map.origin):
+        return radio_map
+    mask[radio_map.ij[:, 0], radio_map.ij[:, 1]] = False
+    cells = np.argwhere(mask)
+    centres = origin + (cells[:, ::-1] + 0.5) * radio_map.cell
+    dist, _ = cKDTree(refs.xy).query(centres, distance_upper_bound=reach_m)
+    added = cells[np.isfinite(dist)].astype(np.int32)
+    if added.shape[0] == 0:
+        return radio_map
+    unknown = np.full((added.shape[0], radio_map.tx.size), np.nan, dtype=np.float32)
+    return replace(
+        radio_map,
+        ij=np.concatenate([radio_map.ij, added]),
+        mean=np.concatenate([radio_map.mean, unknown]),
+        var=np.concatenate([radio_map.var, unknown]),
+        detect=np.concatenate([radio_map.detect, np.zeros_like(unknown)]),
+        weight=np.concatenate([radio_map.weight, np.zeros(added.shape[0], np.float32)]),
+    )
 
 
 def pooling_weights(

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -34,6 +34,7 @@ from app.engine.hmm.validate import (
 )
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, measure_walk
+from app.engine.plan import FloorPlan
 from app.engine.radiomap import (
     RadioMap,
     RadioMapParams,
@@ -267,7 +268,7 @@ def compute_build(
     fits = sorted(wifi_fits + beacon_fits, key=lambda f: f.tx)
     report(0.65)
     measured = _measured_walks(inputs)
-    replays = HmmReplays(inputs, tx_ids, tune_site(measured, None), hmm_walks if tune else 0)
+    replays = HmmReplays(inputs, tx_ids, tune_site(measured, None), hmm_walks if tune else 0, plans)
     validation = cross_validate(
         survey,
         plans,
@@ -400,9 +401,15 @@ class HmmReplays:
     """
 
     def __init__(
-        self, inputs: BuildInputs, tx_ids: tuple[str, ...], base: SiteTuning, per_fold: int
+        self,
+        inputs: BuildInputs,
+        tx_ids: tuple[str, ...],
+        base: SiteTuning,
+        per_fold: int,
+        plans: Mapping[int, FloorPlan],
     ) -> None:
         index = {tx: i for i, tx in enumerate(tx_ids)}
+        self.plans = plans
         self.walks: dict[int, HeldWalk] = {}
         if per_fold > 0:
             for w, s in enumerate(inputs.surveys):
@@ -438,9 +445,8 @@ class HmmReplays:
         if len(held) > self.per_fold:
             held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
         walks = [self.walks[w] for w in held]
-        for key, new in zip(
-            self.pairs, candidate_results(maps, walks, self.candidates, self.pdr), strict=True
-        ):
+        replayed = candidate_results(maps, walks, self.candidates, self.pdr, self.plans)
+        for key, new in zip(self.pairs, replayed, strict=True):
             self.results[key] += new
 
     @property

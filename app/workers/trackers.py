@@ -105,7 +105,8 @@ class SiteEngines:
     def hmm(self) -> EmissionModel:
         """Return the site's radio-map emission tables (shared by its HMM devices), built once."""
         if self._hmm is None:
-            self._hmm = EmissionModel(self.site.radio_maps, self.hmm_params)
+            plans = {i: floor.plan for i, floor in enumerate(self.site.model.floors)}
+            self._hmm = EmissionModel(self.site.radio_maps, self.hmm_params, plans)
         return self._hmm
 
 

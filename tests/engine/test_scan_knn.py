@@ -8,12 +8,15 @@ map through storage so the HMM can use it.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
+from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMapParams, Survey, build_radio_map
 from app.engine.samples import Batch, Estimate, RssiReadings
 from app.engine.scan_knn import ReferenceScans, ScanKnnParams
@@ -240,3 +243,65 @@ def test_the_hmm_learns_a_phones_rssi_offset_and_a_survey_like_phone_keeps_none(
     assert 4.5 < offset_after_walk(8.0) < 8.5
     assert 4.5 < -offset_after_walk(-8.0) < 8.5
     assert abs(offset_after_walk(0.0)) < 1.5
+
+
+def _open_floor() -> FloorPlan:
+    """A hall 50 m by 14 m, free everywhere, around the surveyed corridor (y = 1)."""
+    free = np.ones((28, 100), dtype=bool)
+    return FloorPlan.from_raster(origin=np.array([-5.0, -4.0]), cell=0.5, free=free)
+
+
+def test_points_reach_past_the_survey_scored_as_the_survey_nearest_them(survey: Survey) -> None:
+    plan = _open_floor()
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1), walkable=plan)
+    params = HmmParams(reach_m=8.0)
+    model = EmissionModel([m], params, plans={0: plan})
+    (wide,) = model.maps
+    # the map's own points first and unchanged, then cells past its 3 m, up to 8 m
+    assert model.surveyed_points == [m.n_points] and wide.n_points > m.n_points
+    assert np.array_equal(wide.ij[: m.n_points], m.ij)
+    added = wide.xy[m.n_points :]
+    reach = np.min(np.hypot(*(added[:, None] - survey.scan_xy[None]).transpose(2, 0, 1)), axis=1)
+    assert reach.min() > 2.5 and reach.max() <= 8.0
+    # without a plan, or with no reach, the points are the map's
+    assert EmissionModel([m], params).maps[0] is m
+    assert EmissionModel([m], replace(params, reach_m=0.0), {0: plan}).maps[0] is m
+
+    rng = np.random.default_rng(5)
+    tx, rssi = _heard(17.0, rng)
+    (ll,) = model.log_likelihoods(tx, rssi)
+    (own,) = EmissionModel([m], params).log_likelihoods(tx, rssi)
+    # the map's own points score as before; the best point is still where the scan was made
+    assert ll[: m.n_points] == pytest.approx(own)
+    assert abs(wide.xy[int(np.argmax(ll)), 0] - 17.0) < 3.0
+    # points straight across the hall from x = 17 score as the survey scans near x = 17,
+    # points across from the far end as those at the far end: the worse match
+    across = [
+        int(np.argmin(np.hypot(wide.xy[:, 0] - x, wide.xy[:, 1] - 8.0))) for x in (17.25, 39.75)
+    ]
+    assert all(i >= m.n_points for i in across)
+    nearest = [int(np.argmin(np.hypot(*(m.xy - wide.xy[i]).T))) for i in across]
+    assert ll[across] == pytest.approx(own[nearest], abs=1.5)
+    assert ll[across[0]] > ll[across[1]]
+
+
+def test_points_reaching_past_the_survey_do_not_weigh_the_floors(survey: Survey) -> None:
+    plan = _open_floor()
+    m = build_radio_map(survey, 0, RadioMapParams(min_scans=1), walkable=plan)
+    other = build_radio_map(
+        Survey.concat([replace(survey, scan_floor=np.ones(survey.n_scans, np.int32))]),
+        1,
+        RadioMapParams(min_scans=1),
+    )
+    params = HmmParams(reach_m=8.0)
+    rng = np.random.default_rng(9)
+    tx, rssi = _heard(20.0, rng)
+    beliefs = []
+    for plans in (None, {0: plan}):
+        tracker = HmmTracker(EmissionModel([m, other], params, plans), params)
+        for k in range(3):
+            t = np.full(tx.size, 1000 * k, np.int64)
+            tracker.process(Batch(rssi=RssiReadings(t=t, tx=tx, rssi=rssi)))
+        beliefs.append(tracker.floor_logp)
+    # floor 1 (no plan) is the same survey: the floors tie, however far floor 0's points reach
+    assert beliefs[1] == pytest.approx(beliefs[0])

@@ -276,9 +276,11 @@ class HmmTracker:
         # as loud as the survey's phones would have heard it
         rssi = rssi - self.rssi_offset
         ll = model.log_likelihoods(tx, rssi)
-        # per-floor marginal under the floor's own tempering: ln mean_j L_j^(w_f / w)
+        # per-floor marginal under the floor's own tempering, ln mean_j L_j^(w_f / w), over
+        # the surveyed points: those reaching past the survey would weigh floors by its gaps
         rescale = p.floor_weight / p.emission_weight
-        marginal = np.array([_logsumexp(rescale * v) - np.log(v.size) for v in ll])
+        own = [v[:n] for v, n in zip(ll, model.surveyed_points, strict=True)]
+        marginal = np.array([_logsumexp(rescale * v) - np.log(v.size) for v in own])
         n = marginal.size
         stay = np.exp(self.floor_logp)
         eps = p.floor_switch_prob

@@ -12,7 +12,7 @@ trust the tracker's positions against its steps.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -21,6 +21,7 @@ from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
 from app.engine.pdr import PdrParams
+from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap, interpolate_waypoints
 from app.engine.samples import Batch, Estimate, ImuSamples, RssiReadings
 from app.engine.smoothing import SmootherParams, fixed_lag, smooth_track
@@ -122,15 +123,19 @@ def candidate_results(
     walks: Sequence[HeldWalk],
     candidates: Sequence[HmmParams],
     pdr: PdrParams,
+    plans: Mapping[int, FloorPlan] | None = None,
 ) -> list[list[WalkResult]]:
     """Return every replayed walk's result, per candidate, the same walks for each.
+
+    ``plans`` (floor index to plan) let the points reach past the survey, as
+    the worker's HMM does.
 
     A walk one candidate gave no estimate on is left out of all, so candidates
     compare walk by walk.
     """
     out: list[list[WalkResult | None]] = []
     for params in candidates:
-        model = EmissionModel(maps, params)
+        model = EmissionModel(maps, params, plans)
         out.append([replay_walk(model, params, pdr, walk) for walk in walks])
     scored = [all(results[i] is not None for results in out) for i in range(len(walks))]
     return [
