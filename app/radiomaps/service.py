@@ -395,7 +395,8 @@ class HmmReplays:
     the replays also calibrate the radius. The candidates step away from the
     defaults one constant at a time (a fold's maps are too large to keep for
     a second round): every emission weight with the default k-NN fix weight,
-    and every fix weight with the default emission weight. A fix weight other
+    and every fix weight with the default emission weight, all with the
+    default floor weight (the per-scan floor scores choose the site's). A fix weight other
     than the default is chosen only where the emission weight stays at its
     default, so the chosen pair was always replayed.
     """
@@ -428,7 +429,6 @@ class HmmReplays:
             replace(
                 base.hmm(),
                 emission_weight=w,
-                floor_weight=w,
                 fix_nats=f,
                 accuracy_floor_m=0.0,
                 radius_scale=1.0,

@@ -375,13 +375,15 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     # the chosen k and weight are the best of the candidates, as the scores show
     by_k = {int(k): v for k, v in scores["wknn_mean_error_m_by_k"].items()}
     assert by_k[tuning["wknn_k"]] == min(by_k.values())
-    # the emission and floor weights come from replaying held-out survey walks through the
-    # HMM: the default unless another erred less by more than the walks' luck
+    # the emission weight comes from replaying held-out survey walks through the HMM: the
+    # default unless another erred less by more than the walks' luck
     assert scores["hmm_walks"] > 0
     by_w = {float(w): v for w, v in scores["hmm_walk_error_m_by_weight"].items()}
     default = HmmParams().emission_weight
     assert by_w[tuning["emission_weight"]] <= by_w[default]
-    assert tuning["floor_weight"] == tuning["emission_weight"]
+    # the floor weight is the one whose per-scan floor posteriors scored best
+    by_floor = {float(w): v for w, v in scores["floor_log_score_by_weight"].items()}
+    assert by_floor[tuning["floor_weight"]] == max(by_floor.values())
     # so does the k-NN fix's weight, moved only where the emission weight stayed
     by_fix = {float(f): v for f, v in scores["hmm_walk_error_m_by_fix_weight"].items()}
     default_fix = HmmParams().fix_nats
