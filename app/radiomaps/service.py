@@ -396,9 +396,9 @@ class HmmReplays:
     defaults one constant at a time (a fold's maps are too large to keep for
     a second round): every emission weight with the default k-NN fix weight,
     and every fix weight with the default emission weight, all with the
-    default floor weight (the per-scan floor scores choose the site's). A fix weight other
-    than the default is chosen only where the emission weight stays at its
-    default, so the chosen pair was always replayed.
+    default floor weight (the per-scan floor scores choose the site's). A fix
+    weight other than the default is chosen only where the emission weight
+    stays at its default, so the chosen pair was always replayed.
     """
 
     def __init__(

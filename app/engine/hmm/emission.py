@@ -10,7 +10,9 @@ Two emissions, prepared once per site and shared by all devices:
   ``d_min`` the best survey scan's anywhere. It compares scans only on what
   both heard, so a sparse survey does not make unmeasured transmitters
   evidence against a point. The tracker adds the k-NN fix
-  (``fix_log_density``): where on the floor the best-matching scans are;
+  (``fix_log_density``): where on the floor the best-matching scans are.
+  Given the floor plans, points also reach past the survey onto walkable
+  cells (``reach_m``), each pooling the survey scans nearest it;
 - otherwise (maps stored without their scans), the seed's per-point
   Gaussian with detection rates.
 """
