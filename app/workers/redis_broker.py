@@ -434,7 +434,8 @@ class RedisWorker:
         self.engine.dispose()
 
     def _round(self, stop: threading.Event) -> None:
-        """Renew leases when due, process what the owned streams hold, flush quiet devices."""
+        """Rebalance shards when due, renew the leases, process what the owned streams hold,
+        flush quiet devices."""
         self.sites.poll()
         if time.monotonic() - self._last_manage >= self.settings.lease_s / 3:
             self._manage_leases()

@@ -289,7 +289,7 @@ def test_points_reaching_past_the_survey_do_not_weigh_the_floors(survey: Survey)
     plan = _open_floor()
     m = build_radio_map(survey, 0, RadioMapParams(min_scans=1), walkable=plan)
     other = build_radio_map(
-        Survey.concat([replace(survey, scan_floor=np.ones(survey.n_scans, np.int32))]),
+        replace(survey, scan_floor=np.ones(survey.n_scans, np.int32)),
         1,
         RadioMapParams(min_scans=1),
     )
