@@ -334,10 +334,15 @@ class Pdr:
         t, x = t[keep], x[keep]
         if t.size == 0:
             return Steps()
-        x[:, 1:] = forward_fill(x[:, 1:], self._fill[1:])
+        if np.isnan(x[:, 1:]).any():
+            x[:, 1:] = forward_fill(x[:, 1:], self._fill[1:])
         self._fill = x[-1].copy()
         prev = np.concatenate([[self._t_raw if self._t_raw is not None else t[0]], t[:-1]])
         cuts = np.flatnonzero(t - prev > self.params.max_gap_ms)
+        if cuts.size == 0:
+            if self._t_raw is not None and t[0] - self._t_raw > self.params.max_gap_ms:
+                self._reset_stream()
+            return self._segment(t, x)
         parts = []
         for seg_t, seg_x in zip(np.split(t, cuts), np.split(x, cuts), strict=True):
             if seg_t.size == 0:
@@ -382,8 +387,10 @@ class Pdr:
         grid = np.arange(first, int(t[-1]) + 1, dt, dtype=np.int64)
         if grid.size == 0:
             return Steps()
-        # Linear interpolation of every channel onto the grid.
-        g = np.column_stack([np.interp(grid, src_t, src_x[:, j]) for j in range(_N_CHANNELS)])
+        # Linear interpolation of every channel onto the grid (a channel never sent stays NaN)
+        g = np.full((grid.size, _N_CHANNELS), np.nan)
+        for j in np.flatnonzero(~np.isnan(src_x).all(axis=0)):
+            g[:, j] = np.interp(grid, src_t, src_x[:, j])
         f = self._lowpass(g[:, _A])
         heading = self._heading(g)
         return self._peaks(grid, np.column_stack([f, np.sin(heading), np.cos(heading)]))

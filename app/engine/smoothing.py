@@ -11,8 +11,8 @@ where z_i are the filter's positions with their standard deviation σ_i
 measured between them (odometry) and m_i = a + b Δt_i its error, growing with
 the time between the two (a walker's step length and heading drift). Without
 odometry between two positions (no steps counted) the walker may have moved
-anywhere a walking speed allows. The normal equations are tridiagonal, one
-banded solve per coordinate. Following the strongest smartphone pipelines on
+anywhere a walking speed allows. The normal equations are tridiagonal, solved
+by elimination in one compiled pass. Following the strongest smartphone pipelines on
 this data format (PHONES.md: fix weight ≈ 1/8², motion weight ≈
 1/(0.3 + 0.3 Δt)²).
 
@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.linalg import solveh_banded
+from numba import njit
 
 from app.engine.gaussian import R68_SIGMAS_2D
 from app.engine.samples import Estimate
@@ -99,30 +99,85 @@ def smooth_positions(
     params : SmootherParams
         Motion and fix errors.
     """
-    n = t.size
-    if n < 2:
+    if t.size < 2:
         return np.asarray(xy, dtype=float).copy()
-    dt = np.diff(t) / 1000.0
-    step = np.diff(odometry, axis=0)
-    known = np.all(np.isfinite(step), axis=1)
-    # m_i = a + b Δt with odometry, v Δt (+ a) without
-    m = np.where(
-        known,
-        params.motion_std_m + params.motion_std_per_s * dt,
-        params.motion_std_m + params.free_speed_mps * dt,
+    return _solve_track(
+        np.asarray(t, dtype=np.int64),
+        np.asarray(xy, dtype=float),
+        np.asarray(sigma, dtype=float),
+        np.asarray(odometry, dtype=float),
+        float(params.fix_scale),
+        float(params.fix_floor_m),
+        float(params.motion_std_m),
+        float(params.motion_std_per_s),
+        float(params.free_speed_mps),
     )
-    step = np.where(known[:, None], step, 0.0)
-    w_fix = 1.0 / np.maximum(params.fix_scale * sigma, params.fix_floor_m) ** 2
-    w_mot = 1.0 / m**2
-    # normal equations (W_fix + Dᵀ W_mot D) p = W_fix z + Dᵀ W_mot Δo, D the difference operator
-    diag = w_fix.copy()
-    diag[:-1] += w_mot
-    diag[1:] += w_mot
-    upper = np.concatenate([[0.0], -w_mot])
-    rhs = w_fix[:, None] * xy
-    rhs[:-1] -= w_mot[:, None] * step
-    rhs[1:] += w_mot[:, None] * step
-    return solveh_banded(np.vstack([upper, diag]), rhs)
+
+
+@njit(cache=True)
+def _solve_track(
+    t: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+    odometry: np.ndarray,
+    fix_scale: float,
+    fix_floor_m: float,
+    motion_std_m: float,
+    motion_std_per_s: float,
+    free_speed_mps: float,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Build and solve the smoother's tridiagonal normal equations (n ≥ 2).
+
+    A live device solves a few dozen positions several times a second: one
+    compiled pass costs a few microseconds where numpy's array calls and the
+    banded LAPACK wrapper cost some 40.
+    """
+    n = t.size
+    diag = np.empty(n)
+    off = np.zeros(n)  # off[i] couples positions i and i + 1
+    rhs = np.empty((n, 2))
+    for i in range(n):
+        # w_fix = 1 / max(s σ, σ_min)²
+        sd = max(fix_scale * sigma[i], fix_floor_m)
+        w = 1.0 / (sd * sd)
+        diag[i] = w
+        rhs[i, 0] = w * xy[i, 0]
+        rhs[i, 1] = w * xy[i, 1]
+    for i in range(n - 1):
+        dt = (t[i + 1] - t[i]) / 1000.0
+        sx = odometry[i + 1, 0] - odometry[i, 0]
+        sy = odometry[i + 1, 1] - odometry[i, 1]
+        # m_i = a + b Δt with odometry, v Δt (+ a) without
+        if np.isfinite(sx) and np.isfinite(sy):
+            m = motion_std_m + motion_std_per_s * dt
+        else:
+            m = motion_std_m + free_speed_mps * dt
+            sx = 0.0
+            sy = 0.0
+        w = 1.0 / (m * m)
+        # (W_fix + Dᵀ W_mot D) p = W_fix z + Dᵀ W_mot Δo, D the difference operator
+        diag[i] += w
+        diag[i + 1] += w
+        off[i] = -w
+        rhs[i, 0] -= w * sx
+        rhs[i, 1] -= w * sy
+        rhs[i + 1, 0] += w * sx
+        rhs[i + 1, 1] += w * sy
+    # the symmetric positive definite tridiagonal system by elimination (Thomas)
+    c = np.empty(n)
+    out = np.empty((n, 2))
+    c[0] = off[0] / diag[0]
+    out[0, 0] = rhs[0, 0] / diag[0]
+    out[0, 1] = rhs[0, 1] / diag[0]
+    for i in range(1, n):
+        denom = diag[i] - off[i - 1] * c[i - 1]
+        c[i] = off[i] / denom
+        out[i, 0] = (rhs[i, 0] - off[i - 1] * out[i - 1, 0]) / denom
+        out[i, 1] = (rhs[i, 1] - off[i - 1] * out[i - 1, 1]) / denom
+    for i in range(n - 2, -1, -1):
+        out[i, 0] -= c[i] * out[i + 1, 0]
+        out[i, 1] -= c[i] * out[i + 1, 1]
+    return out
 
 
 def _arrays(
@@ -182,8 +237,10 @@ class FixedLagSmoother:
     """A device's live smoother: each position re-emitted refined once ``lag_ms`` has passed.
 
     Holds the positions of the last ``window_ms + lag_ms`` of measurement
-    time. ``push`` takes the filter's new positions and returns the refined
-    ones that are now due (``smoothed`` set), each with one banded solve, as
+    time, with their times, coordinates, σ, odometry and floors as arrays
+    kept alongside (each position converted once, not at every solve).
+    ``push`` takes the filter's new positions and returns the refined ones
+    that are now due (``smoothed`` set), each with one solve, as
     ``fixed_lag`` solves it over a whole track.
     """
 
@@ -194,6 +251,7 @@ class FixedLagSmoother:
         if state is not None:
             self.held = [_estimate(e) for e in json.loads(str(state["held"]))]
             self.done_t = int(state["done_t"])
+        self._columns = _arrays(self.held)
 
     def push(self, estimates: Sequence[Estimate], *, now_t: int | None = None) -> list[Estimate]:
         """Add the filter's new positions; return the refined positions now due, in time order.
@@ -202,28 +260,43 @@ class FixedLagSmoother:
         after it (or measurement time ``now_t`` has passed that far).
         """
         p = self.params
-        self.held += [e for e in estimates if e.t > (self.held[-1].t if self.held else -1)]
+        last = self.held[-1].t if self.held else -1
+        new = []
+        for e in estimates:
+            if e.t > last:
+                new.append(e)
+                last = e.t
+        if new:
+            self.held += new
+            self._columns = tuple(
+                np.concatenate([old, part])
+                for old, part in zip(self._columns, _arrays(new), strict=True)
+            )
         if not self.held:
             return []
-        horizon = max(self.held[-1].t, now_t if now_t is not None else -1)
-        due = [i for i, e in enumerate(self.held) if self.done_t < e.t <= horizon - p.lag_ms]
-        out = [replace(self._refine(i), smoothed=True) for i in due]
-        if due:
-            self.done_t = self.held[due[-1]].t
-        keep_from = self.done_t - p.window_ms
-        self.held = [h for h in self.held if h.t >= keep_from]
+        t = self._columns[0]
+        horizon = max(int(t[-1]), now_t if now_t is not None else -1)
+        due = np.flatnonzero((t > self.done_t) & (t <= horizon - p.lag_ms))
+        out = [replace(self._refine(int(i)), smoothed=True) for i in due]
+        if due.size:
+            self.done_t = int(t[due[-1]])
+        first = int(np.searchsorted(t, self.done_t - p.window_ms, side="left"))
+        if first:
+            self.held = self.held[first:]
+            self._columns = tuple(column[first:] for column in self._columns)
         return out
 
     def _refine(self, i: int) -> Estimate:
         """Return held position i solved with its floor run's positions in its window."""
-        p, held, e = self.params, self.held, self.held[i]
-        lo, hi = i, i + 1
-        while lo > 0 and held[lo - 1].floor == e.floor and held[lo - 1].t >= e.t - p.window_ms:
-            lo -= 1
-        while hi < len(held) and held[hi].floor == e.floor and held[hi].t <= e.t + p.lag_ms:
-            hi += 1
-        t, xy, sigma, odo, _ = _arrays(held[lo:hi])
-        x, y = smooth_positions(t, xy, sigma, odo, p)[i - lo]
+        p, e = self.params, self.held[i]
+        t, xy, sigma, odo, floor = self._columns
+        lo = int(np.searchsorted(t, e.t - p.window_ms, side="left"))
+        hi = int(np.searchsorted(t, e.t + p.lag_ms, side="right"))
+        # only the floor run holding position i
+        other = np.flatnonzero(floor[lo:hi] != floor[i]) + lo
+        lo = max(lo, int(other[other < i].max(initial=lo - 1)) + 1)
+        hi = min(hi, int(other[other > i].min(initial=hi)))
+        x, y = smooth_positions(t[lo:hi], xy[lo:hi], sigma[lo:hi], odo[lo:hi], p)[i - lo]
         return replace(e, x=float(x), y=float(y))
 
     def flush(self) -> list[Estimate]:

@@ -143,3 +143,40 @@ def test_filter_positions_whose_errors_persist_count_less_under_a_larger_fix_sca
     }
     assert errors[4.0] < 0.8 * errors[1.0]
     assert errors[1.0] < _error(persistent, truth)
+
+
+def test_the_compiled_solve_is_the_least_squares_track() -> None:
+    """The elimination returns what a dense solve of the same normal equations returns,
+    with a stretch without odometry (speed-bounded) and an unbounded fix among them."""
+    estimates, _ = _walk(n=30, seed=8)
+    t = np.array([e.t for e in estimates])
+    xy = np.array([[e.x, e.y] for e in estimates])
+    sigma = np.linspace(0.5, 6.0, t.size)
+    sigma[7] = np.inf
+    odo = np.array([e.odometry for e in estimates], dtype=float)
+    odo[12:15] = np.nan
+    p = SmootherParams(fix_scale=2.0)
+    step = np.diff(odo, axis=0)
+    known = np.all(np.isfinite(step), axis=1)
+    dt = np.diff(t) / 1000.0
+    m = np.where(known, p.motion_std_m + p.motion_std_per_s * dt, p.motion_std_m + 1.5 * dt)
+    step = np.where(known[:, None], step, 0.0)
+    difference = np.diff(np.eye(t.size), axis=0)
+    w_fix = np.diag(1.0 / np.maximum(p.fix_scale * sigma, p.fix_floor_m) ** 2)
+    w_mot = np.diag(1.0 / m**2)
+    lhs = w_fix + difference.T @ w_mot @ difference
+    rhs = w_fix @ xy + difference.T @ w_mot @ step
+    assert np.allclose(smooth_positions(t, xy, sigma, odo, p), np.linalg.solve(lhs, rhs))
+
+
+def test_positions_sharing_a_time_are_refined_once_as_the_first_was_reported() -> None:
+    """A step and a scan can fall on the same millisecond: the stream emits the first, and
+    the refined stream refines that one, once."""
+    estimates, _ = _walk(n=30)
+    twin = replace(estimates[10], x=estimates[10].x + 50.0)
+    smoother = FixedLagSmoother(PARAMS)
+    got = smoother.push([*estimates[:11], twin, *estimates[11:]]) + smoother.flush()
+    assert [e.t for e in got] == [e.t for e in estimates]
+    assert np.allclose(
+        [[e.x, e.y] for e in got], [[e.x, e.y] for e in fixed_lag(estimates, PARAMS)]
+    )
