@@ -112,7 +112,14 @@ class HmmParams:
     floor_switch_prob : float
         Probability per scan that the floor changes.
     floor_switch_posterior : float
-        Belief another floor must reach before the tracked floor changes.
+        Belief another floor must reach before the tracked floor changes. On
+        site1's validation walks (147 held-out walks joined in pairs across
+        floors, maps from the other 310) 0.8 followed a change of floor in
+        2.0 s at the median and 6.1 s at p90, against 3.8 s and 8.2 s at 0.99,
+        with as many positions on a wrong floor (1.85% against 1.87%) and,
+        on the positions both put on the right floor, a live mean 0.006 m
+        and a fixed-lag mean 0.021 m higher. At 0.6 the tracks lost more
+        (0.035 / 0.060 m).
     relocate_margin : float
         Restart from k-NN when the best point of the floor explains the scan
         better than the predicted distribution by more than this (nats,
@@ -191,7 +198,7 @@ class HmmParams:
     unmapped_var_db2: float = 36.0
     unmapped_detect: float = 0.02
     floor_switch_prob: float = 1e-3
-    floor_switch_posterior: float = 0.99
+    floor_switch_posterior: float = 0.8
     relocate_margin: float = 10.0
     emit_every_ms: int = 1000
     imu_wait_ms: int = 100
