@@ -4,7 +4,9 @@ Radio maps are built from the training walks of the walk split (as a
 radio-map build does), then ``--walks`` test walks are replayed through
 ``HmmTracker`` in one-second batches, as phones upload them. Prints the
 CPU time per device update (median, mean, p95), the per-scan cost of the
-survey-scan distance and of the whole emission, and the maps' size.
+survey-scan distance and of the whole emission, the live fixed-lag
+smoother's time per update (its refined positions, as a worker adds them),
+and the maps' size.
 
 Run: ``python -m bench.hmm`` (about two minutes, most of it reading site1
 and building its maps); ``--site`` names another ILC site folder.
@@ -32,6 +34,11 @@ from app.engine.hmm.params import HmmParams  # noqa: E402
 from app.engine.hmm.tracker import HmmTracker  # noqa: E402
 from app.engine.pdr import PdrParams  # noqa: E402
 from app.engine.radiomap import RadioMapParams  # noqa: E402
+from app.engine.smoothing import (  # noqa: E402
+    FixedLagSmoother,
+    SmootherParams,
+    smooth_positions,
+)
 from app.engine.wknn import unique_readings  # noqa: E402
 from app.evaluation.ilc.learn import radio_maps  # noqa: E402
 from app.evaluation.ilc.recordings import (  # noqa: E402
@@ -90,13 +97,20 @@ def main(argv: list[str] | None = None) -> None:
         model.log_likelihoods(tx, rssi)
 
     emission_ms = per_call_ms(scans, emission)
-    update_ms = []
+    lag = SmootherParams()
+    # the smoother's first solve compiles (or loads) too
+    smooth_positions(np.array([0, 1000]), np.zeros((2, 2)), np.ones(2), np.zeros((2, 2)), lag)
+    update_ms, smoother_ms = [], []
     for walk in batches:
         tracker = HmmTracker(model, HmmParams(), PdrParams())
+        smoother = FixedLagSmoother(lag)
         for batch in walk:
             t0 = time.process_time()
-            tracker.process(batch)
-            update_ms.append(1e3 * (time.process_time() - t0))
+            estimates = tracker.process(batch)
+            t1 = time.process_time()
+            smoother.push(estimates)
+            update_ms.append(1e3 * (t1 - t0))
+            smoother_ms.append(1e3 * (time.process_time() - t1))
     updates = np.array(update_ms)
 
     table = Table(title=f"HMM on {site_dir.name}: {len(walks)} test walks, {updates.size} updates")
@@ -104,6 +118,7 @@ def main(argv: list[str] | None = None) -> None:
         table.add_column(col, justify="right" if col != "measure" else "left")
     for name, v in (
         ("CPU per device update (ms)", updates),
+        ("fixed-lag smoother per device update (ms)", np.array(smoother_ms)),
         ("survey-scan distances per scan (ms)", distance_ms),
         ("emission per scan (ms)", emission_ms),
     ):
