@@ -251,7 +251,7 @@ class FixedLagSmoother:
         if state is not None:
             self.held = [_estimate(e) for e in json.loads(str(state["held"]))]
             self.done_t = int(state["done_t"])
-        self._columns = _arrays(self.held)
+        self._columns: tuple[np.ndarray, ...] = _arrays(self.held)
 
     def push(self, estimates: Sequence[Estimate], *, now_t: int | None = None) -> list[Estimate]:
         """Add the filter's new positions; return the refined positions now due, in time order.
