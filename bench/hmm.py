@@ -37,7 +37,7 @@ from app.engine.radiomap import RadioMapParams  # noqa: E402
 from app.engine.smoothing import (  # noqa: E402
     FixedLagSmoother,
     SmootherParams,
-    smooth_positions,
+    load_solver,
 )
 from app.engine.wknn import unique_readings  # noqa: E402
 from app.evaluation.ilc.learn import radio_maps  # noqa: E402
@@ -98,8 +98,7 @@ def main(argv: list[str] | None = None) -> None:
 
     emission_ms = per_call_ms(scans, emission)
     lag = SmootherParams()
-    # the smoother's first solve compiles (or loads) too
-    smooth_positions(np.array([0, 1000]), np.zeros((2, 2)), np.ones(2), np.zeros((2, 2)), lag)
+    load_solver()
     update_ms, smoother_ms = [], []
     for walk in batches:
         tracker = HmmTracker(model, HmmParams(), PdrParams())

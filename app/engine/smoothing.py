@@ -114,6 +114,16 @@ def smooth_positions(
     )
 
 
+def load_solver() -> None:
+    """Solve a two-position track once: the compiled solver is ready before a device needs it.
+
+    The first solve in a process compiles it, or reads it from numba's disk cache.
+    """
+    smooth_positions(
+        np.array([0, 1000]), np.zeros((2, 2)), np.ones(2), np.zeros((2, 2)), SmootherParams()
+    )
+
+
 @njit(cache=True)
 def _solve_track(
     t: np.ndarray,

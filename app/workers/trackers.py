@@ -26,7 +26,7 @@ from app.engine.particle.floor_model import build_floor_models
 from app.engine.pdr import PdrParams
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate, RssiReadings
-from app.engine.smoothing import FixedLagSmoother, SmootherParams, smooth_positions
+from app.engine.smoothing import FixedLagSmoother, SmootherParams, load_solver
 from app.engine.tracker import Tracker
 from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
 from app.sites.assembly import LoadedSite
@@ -83,7 +83,7 @@ class SiteEngines:
         if kind == PF:
             _warm_particle_filter(self.pf, self.site)
         elif kind == HMM:
-            _warm_hmm(self.hmm, self.smoother_params)
+            _warm_hmm(self.hmm)
         return self
 
     @property
@@ -133,13 +133,13 @@ def _warm_particle_filter(engine: PositioningEngine, site: LoadedSite) -> None:
         engine.remove(WARM_UP_DEVICE)
 
 
-def _warm_hmm(model: EmissionModel, smoother: SmootherParams) -> None:
+def _warm_hmm(model: EmissionModel) -> None:
     """Compare one reading with the survey scans and smooth two positions, so the compiled
     distance and smoother are ready."""
     refs = model.references
     if refs is not None and refs.usable.any():
         refs.distances(np.flatnonzero(refs.usable)[:1], np.array([-60.0]))
-    smooth_positions(np.array([0, 1000]), np.zeros((2, 2)), np.ones(2), np.zeros((2, 2)), smoother)
+    load_solver()
 
 
 class BatchEngine(Protocol):
