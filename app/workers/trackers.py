@@ -19,6 +19,7 @@ import numpy as np
 
 from app.engine.centroid import CentroidParams, WeightedCentroid
 from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.kernels import load_kernels
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
 from app.engine.locator_tracker import LocatorTracker, LocatorTrackerParams
@@ -134,11 +135,12 @@ def _warm_particle_filter(engine: PositioningEngine, site: LoadedSite) -> None:
 
 
 def _warm_hmm(model: EmissionModel) -> None:
-    """Compare one reading with the survey scans and smooth two positions, so the compiled
-    distance and smoother are ready."""
+    """Compare one reading with the survey scans, run the HMM's kernels and smooth two
+    positions, so the compiled loops are ready."""
     refs = model.references
     if refs is not None and refs.usable.any():
         refs.distances(np.flatnonzero(refs.usable)[:1], np.array([-60.0]))
+    load_kernels()
     load_solver()
 
 

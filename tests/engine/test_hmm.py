@@ -7,11 +7,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy import signal
 
 from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.kernels import propagate
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.tracker import HmmTracker
-from app.engine.hmm.transition import propagate, step_displacement, transition_kernel
+from app.engine.hmm.transition import step_displacement, transition_kernel
 from app.engine.radiomap import RadioMap
 from app.engine.samples import Batch, RssiReadings
 from app.workers import snapshots
@@ -74,6 +76,27 @@ def test_transition_moves_the_mass_by_the_displacement() -> None:
     assert int(np.argmax(out)) == 5
     # the row above and below are not reference points: their share of the kernel is lost
     assert out.sum() == pytest.approx(kernel[h].sum(), rel=1e-9)
+
+
+def test_the_compiled_transition_is_the_grid_convolution_restricted_to_points() -> None:
+    # an L-shaped floor: a 12 x 3 m corridor and a 3 x 10 m one, 1 m cells
+    mask = np.zeros((12, 14), dtype=bool)
+    mask[0:3, :12] = True
+    mask[:, 9:12] = True
+    ij = np.argwhere(mask).astype(np.int32)
+    grid = np.full(mask.shape, -1, dtype=np.int32)
+    grid[ij[:, 0], ij[:, 1]] = np.arange(ij.shape[0])
+    rng = np.random.default_rng(4)
+    prob = np.where(rng.random(ij.shape[0]) < 0.3, rng.random(ij.shape[0]), 0.0)
+    kernel, h = transition_kernel(np.array([1.3, -0.6]), np.diag([0.4, 0.9]), 1.0, 3.0)
+    out = propagate(prob, ij, grid, kernel, h)
+    # the same move as an image convolution: every cell, then read at the points
+    image = np.zeros(mask.shape)
+    image[ij[:, 0], ij[:, 1]] = prob
+    moved = signal.convolve2d(image, kernel, mode="same")
+    assert out == pytest.approx(moved[ij[:, 0], ij[:, 1]], abs=1e-15)
+    # mass moved off the floor is lost, none is made
+    assert out.sum() < prob.sum()
 
 
 def test_a_still_device_is_located_in_its_cell() -> None:

@@ -126,6 +126,44 @@ def test_the_hmm_emission_peaks_where_the_scan_was_made(survey: Survey) -> None:
     assert np.all(flat == 0.0)
 
 
+def test_the_pooled_emission_and_floor_marginals_follow_their_formulas(survey: Survey) -> None:
+    # floor 1 is the same corridor heard 45 dB louder: every scan there is far in signal space
+    loud = replace(
+        survey,
+        scan_floor=np.ones(survey.n_scans, dtype=np.int32),
+        reading_rssi=survey.reading_rssi + 45.0,
+    )
+    maps = [build_radio_map(s, f, RadioMapParams(min_scans=1)) for f, s in ((0, survey), (1, loud))]
+    params = HmmParams(emission_weight=0.1, floor_weight=0.2, knn_max_db=30.0)
+    model = EmissionModel(maps, params)
+    assert model.references is not None
+    tx, rssi = _heard(12.0, np.random.default_rng(9))
+    d = model.references.distances(tx, rssi)
+    lls = model.log_likelihoods(tx, rssi)
+    marginal = model.floor_log_marginals(tx, rssi)
+    # e_s = exp(-(d_s - d_min) / τ)
+    e = np.exp(-(d - d.min()) / params.knn_pool_db)
+    capped = -params.emission_weight * params.knn_nats_per_db * params.knn_max_db
+    for f, m in enumerate(maps):
+        block = model.ref_blocks[f]
+        scans = model.references.xy[block]
+        # K_js ∝ exp(-|x_j - x_s|² / 2b²) over the scans within the radius
+        r2 = np.sum((m.xy[:, None] - scans[None]) ** 2, axis=2)
+        kernel = np.where(r2 <= params.knn_radius_m**2, np.exp(-0.5 * r2 / params.knn_pool_m**2), 0)
+        kernel /= kernel.sum(axis=1, keepdims=True)
+        excess = np.minimum(-params.knn_pool_db * np.log(kernel @ e[block]), params.knn_max_db)
+        by_hand = -params.emission_weight * params.knn_nats_per_db * excess
+        if f == 1:
+            # every scan of the loud floor is past the cap: the whole floor is capped
+            assert d[block].min() > d.min() + params.knn_max_db
+            by_hand = np.full(m.n_points, capped)
+        assert lls[f] == pytest.approx(by_hand, abs=1e-9)
+        # ln mean_j L_j^(w_f / w)
+        tempered = params.floor_weight / params.emission_weight * by_hand
+        assert marginal[f] == pytest.approx(np.log(np.mean(np.exp(tempered))), abs=1e-9)
+    assert marginal[0] > marginal[1]
+
+
 def test_the_distance_is_the_mean_difference_on_shared_transmitters_plus_the_unshared_penalty() -> (
     None
 ):

@@ -24,7 +24,9 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
+from scipy.special import logsumexp
 
+from app.engine.hmm.kernels import mixture_log_density, pooled_emission
 from app.engine.hmm.params import HmmParams
 from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap, extend_onto_plan
@@ -69,6 +71,8 @@ class EmissionModel:
         self.floors = tuple(m.floor for m in self.maps)
         self.fingerprints = Fingerprints(surveyed, params.missing_dbm)
         self.grids = [m.index_grid() for m in self.maps]
+        # grid row and column of each point, typed once for the compiled transition
+        self.cells = [np.ascontiguousarray(m.ij, dtype=np.int32) for m in self.maps]
         self.xy = [m.xy for m in self.maps]
         self.mean: list[np.ndarray] = []
         self.inv_var: list[np.ndarray] = []
@@ -104,21 +108,26 @@ class EmissionModel:
         )
         self.params = params
         self.references: ReferenceScans | None = None
-        self.pool: list[sparse.csr_matrix] = []
         self.ref_blocks: list[slice] = []
         if self.maps and all(m.references is not None for m in self.maps):
             self._prepare_references()
         self._cache: tuple[bytes, np.ndarray] | None = None
+        self._evidence: tuple[bytes, list[np.ndarray], np.ndarray] | None = None
 
     def _prepare_references(self) -> None:
-        """Gather the survey scans and each point's kernel over its floor's scans."""
+        """Gather the survey scans and each point's kernel over its floor's scans.
+
+        The kernels of every floor's points are one CSR matrix, points stacked
+        floor after floor, over all survey scans (floor f's in ``ref_blocks[f]``).
+        """
         p = self.params
         self.references = ReferenceScans.from_maps(self.maps, self.n_tx)
         start = 0
-        for m, xy in zip(self.maps, self.xy, strict=True):
+        rows, cols, values = [], [], []
+        point_start = np.cumsum([0] + [m.n_points for m in self.maps], dtype=np.int64)
+        for m, xy, first in zip(self.maps, self.xy, point_start[:-1], strict=True):
             n = m.references.xy.shape[0] if m.references is not None else 0
             block = slice(start, start + n)
-            start += n
             near = cKDTree(xy).sparse_distance_matrix(
                 cKDTree(self.references.xy[block]), p.knn_radius_m, output_type="ndarray"
             )
@@ -130,8 +139,22 @@ class EmissionModel:
             far = np.flatnonzero(total == 0)
             if far.size and n:
                 pool = pool + self._reach_pool(xy[far], far, self.references.xy[block], xy.shape[0])
-            self.pool.append(sparse.csr_matrix(pool))
+            entries = sparse.coo_matrix(pool)
+            rows.append(entries.row + first)
+            cols.append(entries.col + start)
+            values.append(entries.data)
             self.ref_blocks.append(block)
+            start += n
+        stacked = sparse.csr_matrix(
+            (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(int(point_start[-1]), start),
+        )
+        self.pool_indptr = stacked.indptr.astype(np.int64)
+        self.pool_indices = stacked.indices.astype(np.int32)
+        self.pool_data = stacked.data.astype(np.float64)
+        self.point_start = point_start
+        self.surveyed = np.array(self.surveyed_points, dtype=np.int64)
+        self.ref_start = np.array([b.start for b in self.ref_blocks] + [start], dtype=np.int64)
 
     def _reach_pool(
         self, xy: np.ndarray, rows: np.ndarray, scans: np.ndarray, n_points: int
@@ -171,30 +194,48 @@ class EmissionModel:
 
     def log_likelihoods(self, tx: np.ndarray, rssi: np.ndarray) -> list[np.ndarray]:
         """Return the tempered log-likelihood of one scan at every point of every map."""
-        if self.references is None:
-            return [self.log_likelihood(f, tx, rssi) for f in range(len(self.maps))]
+        return self._scan_evidence(tx, rssi)[0]
+
+    def floor_log_marginals(self, tx: np.ndarray, rssi: np.ndarray) -> np.ndarray:
+        """Return each floor's evidence for a scan, (F,): ln mean_j L_j^(w_f / w).
+
+        Under the floor's own tempering ``floor_weight``, over the surveyed
+        points only: those reaching past the survey would weigh floors by its
+        gaps.
+        """
+        return self._scan_evidence(tx, rssi)[1]
+
+    def _scan_evidence(
+        self, tx: np.ndarray, rssi: np.ndarray
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """Return ``log_likelihoods`` and ``floor_log_marginals`` of a scan.
+
+        Cached for the last scan, read and replaced whole as ``_distances``' cache.
+        """
+        key = np.asarray(tx, np.int64).tobytes() + np.asarray(rssi, np.float64).tobytes()
+        cached = self._evidence
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
         p = self.params
-        d = self._distances(tx, rssi)
-        if not np.isfinite(d).any():
-            # nothing in common with the survey: no evidence either way
-            return [np.zeros(m.n_points) for m in self.maps]
-        best = float(d.min())
-        # e_s = exp(-(d_s - d_min) / τ)
-        e = np.exp(-(d - best) / p.knn_pool_db)
-        capped = -p.emission_weight * p.knn_nats_per_db * p.knn_max_db
-        out = []
-        for pool, block in zip(self.pool, self.ref_blocks, strict=True):
-            near = d[block]
-            if not (near < best + p.knn_max_db + _CAP_MARGIN_DB).any():
-                # every survey scan of the floor is knn_max_db worse than the best: each
-                # point's soft minimum is at least that, so all are capped (no pooling)
-                out.append(np.full(pool.shape[0], capped))
-                continue
-            pooled = pool @ e[block]
-            # D_j - d_min = -τ ln Σ_s K_js e_s, at most knn_max_db
-            excess = np.minimum(-p.knn_pool_db * np.log(np.maximum(pooled, 1e-300)), p.knn_max_db)
-            out.append(-p.emission_weight * p.knn_nats_per_db * excess)
-        return out
+        rescale = p.floor_weight / p.emission_weight
+        if self.references is None:
+            lls = [self.log_likelihood(f, tx, rssi) for f in range(len(self.maps))]
+            own = [rescale * v[:n] for v, n in zip(lls, self.surveyed_points, strict=True)]
+            marginal = np.array([logsumexp(v) - np.log(v.size) for v in own])
+        else:
+            d = self._distances(tx, rssi)
+            if not np.isfinite(d).any():
+                # nothing in common with the survey: no evidence either way
+                lls, marginal = [np.zeros(m.n_points) for m in self.maps], np.zeros(len(self.maps))
+            else:
+                ll, marginal = pooled_emission(
+                    d, self.ref_start, self.pool_indptr, self.pool_indices, self.pool_data,
+                    self.point_start, self.surveyed, p.knn_pool_db, p.knn_max_db,
+                    p.emission_weight * p.knn_nats_per_db, rescale, _CAP_MARGIN_DB,
+                )  # fmt: skip
+                lls = np.split(ll, self.point_start[1:-1])
+        self._evidence = (key, lls, marginal)
+        return lls, marginal
 
     def is_mapped(self, tx: np.ndarray) -> np.ndarray:
         """Return which site transmitter indices some floor's map has, shape (n,)."""
@@ -289,22 +330,10 @@ class EmissionModel:
             return None
         centres, weight = near
         xy = self.xy[f] if points is None else self.xy[f][points]
-        # ln Σ_i w_i exp(-|x - c_i|² / 2σ²), relative to its largest value at a centre;
-        # |x - c|² = |x|² + |c|² - 2 x·c: a matrix product, not a (n, k, 2) difference
-        d2 = (
-            np.einsum("ij,ij->i", xy, xy)[:, None]
-            + np.einsum("ij,ij->i", centres, centres)[None, :]
-            - 2.0 * (xy @ centres.T)
+        log_rel = mixture_log_density(
+            xy, np.ascontiguousarray(centres), weight, p.fix_sigma_m, p.fix_max_nats
         )
-        density = np.exp(-0.5 * d2 / p.fix_sigma_m**2) @ weight
-        at_centres = (
-            np.exp(
-                -0.5 * np.sum((centres[:, None] - centres[None]) ** 2, axis=2) / p.fix_sigma_m**2
-            )
-            @ weight
-        )
-        log_rel = np.log(np.maximum(density, 1e-300)) - np.log(at_centres.max())
-        return p.emission_weight * p.fix_nats * np.maximum(log_rel, -p.fix_max_nats)
+        return p.emission_weight * p.fix_nats * log_rel
 
     def level_offset(self, f: int, point: int, tx: np.ndarray, rssi: np.ndarray) -> float | None:
         """Return how much louder (dB) the scan heard than the survey scans around a point.
@@ -316,11 +345,11 @@ class EmissionModel:
         """
         if self.references is None:
             return None
-        pool = self.pool[f]
-        near = pool.indices[pool.indptr[point] : pool.indptr[point + 1]]
+        row = self.point_start[f] + point
+        near = self.pool_indices[self.pool_indptr[row] : self.pool_indptr[row + 1]]
         if near.size == 0:
             return None
-        return self.references.level_offset(tx, rssi, near + (self.ref_blocks[f].start or 0))
+        return self.references.level_offset(tx, rssi, near)
 
     def best_match(self, f: int, tx: np.ndarray, rssi: np.ndarray) -> float | None:
         """Return the scan's distance (dB) to the nearest survey scan of map ``f``.

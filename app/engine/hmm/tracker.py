@@ -9,8 +9,9 @@ import numpy as np
 
 from app.engine.gaussian import R68_SIGMAS_2D
 from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.kernels import propagate
 from app.engine.hmm.params import HmmParams
-from app.engine.hmm.transition import propagate, step_displacement, transition_kernel
+from app.engine.hmm.transition import step_displacement, transition_kernel
 from app.engine.pdr import Pdr, PdrParams, Steps
 from app.engine.samples import Batch, Estimate
 from app.engine.scans import group_scans
@@ -276,11 +277,7 @@ class HmmTracker:
         # as loud as the survey's phones would have heard it
         rssi = rssi - self.rssi_offset
         ll = model.log_likelihoods(tx, rssi)
-        # per-floor marginal under the floor's own tempering, ln mean_j L_j^(w_f / w), over
-        # the surveyed points: those reaching past the survey would weigh floors by its gaps
-        rescale = p.floor_weight / p.emission_weight
-        own = [v[:n] for v, n in zip(ll, model.surveyed_points, strict=True)]
-        marginal = np.array([_logsumexp(rescale * v) - np.log(v.size) for v in own])
+        marginal = model.floor_log_marginals(tx, rssi)
         n = marginal.size
         stay = np.exp(self.floor_logp)
         eps = p.floor_switch_prob
@@ -375,7 +372,7 @@ class HmmTracker:
         # Σ = Σ_steps + q Δt I + cell²/6 I (quantisation of source and target cells)
         cov = self.cov + np.eye(2) * (p.walk_noise_m2_per_s * dt + m.cell**2 / 6.0)
         kernel, h = transition_kernel(self.d, cov, m.cell, p.kernel_sigmas)
-        prior = propagate(self.prob, m.ij, model.grids[self.map], kernel, h)
+        prior = propagate(self.prob, model.cells[self.map], model.grids[self.map], kernel, h)
         total = prior.sum()
         if total > 0:
             prior /= total

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
 
 
 def step_displacement(
@@ -72,50 +71,3 @@ def transition_kernel(
     q = inv[0, 0] * dx * dx + 2.0 * inv[0, 1] * dx * dy + inv[1, 1] * dy * dy
     kernel = np.exp(-0.5 * q)
     return kernel / kernel.sum(), h
-
-
-def propagate(
-    prob: np.ndarray, ij: np.ndarray, grid: np.ndarray, kernel: np.ndarray, h: int
-) -> np.ndarray:
-    """Move a distribution over reference points by a transition kernel.
-
-    Only the bounding box of the points with non-zero probability is
-    convolved; mass landing on cells that are not reference points is lost.
-
-    Parameters
-    ----------
-    prob : ndarray, shape (P,)
-        Probability of each reference point.
-    ij : ndarray of int, shape (P, 2)
-        Grid row and column of each point.
-    grid : ndarray of int, shape (ny, nx)
-        Point index of each grid cell, -1 where none.
-    kernel : ndarray, shape (2h + 1, 2h + 1)
-        From ``transition_kernel``.
-    h : int
-        Kernel half-width (cells).
-
-    Returns
-    -------
-    ndarray, shape (P,)
-        Σ_i p_i K(x_j - x_i) at every point j (not renormalised).
-    """
-    active = np.flatnonzero(prob > 0)
-    out = np.zeros_like(prob)
-    if active.size == 0:
-        return out
-    r0, c0 = ij[active].min(axis=0)
-    r1, c1 = ij[active].max(axis=0)
-    image = np.zeros((r1 - r0 + 1, c1 - c0 + 1))
-    image[ij[active, 0] - r0, ij[active, 1] - c0] = prob[active]
-    # (p * K)[y] = Σ_x p[x] K[y - x]
-    # FFT: scipy's automatic choice picks it here too, after 30 µs of deciding
-    moved = signal.fftconvolve(image, kernel, mode="full")
-    ny, nx = grid.shape
-    lo_r, lo_c = r0 - h, c0 - h
-    rr0, cc0 = max(lo_r, 0), max(lo_c, 0)
-    rr1, cc1 = min(r1 + h, ny - 1), min(c1 + h, nx - 1)
-    sub = grid[rr0 : rr1 + 1, cc0 : cc1 + 1]
-    rows, cols = np.nonzero(sub >= 0)
-    out[sub[rows, cols]] = moved[rows + rr0 - lo_r, cols + cc0 - lo_c]
-    return out

@@ -1,0 +1,168 @@
+"""The HMM's per-scan loops, compiled.
+
+The pooled emission with its floor marginals, the transition over occupied
+cells, and the k-NN fix's mixture density. Each replaces a chain of numpy
+calls on arrays of a few thousand points, where the calls' own overhead and
+the temporaries cost more than the arithmetic. Compiled once per process
+(numba's disk cache); ``load_kernels`` does it before a device needs them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def pooled_emission(
+    d: np.ndarray,
+    ref_start: np.ndarray,
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    point_start: np.ndarray,
+    surveyed: np.ndarray,
+    pool_db: float,
+    max_db: float,
+    nats: float,
+    rescale: float,
+    cap_margin_db: float,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Return every point's log-likelihood of a scan and each floor's log marginal.
+
+    ``d`` are the scan's distances to every survey scan (those of floor f at
+    ``ref_start[f]:ref_start[f+1]``). A point pools the survey scans around
+    it (row j of the CSR ``indptr, indices, data``; floor f's points at
+    ``point_start[f]:point_start[f+1]``, its first ``surveyed[f]`` its own):
+    ``ln L_j = -nats · min(-pool_db ln Σ_s K_js e_s, max_db)`` with ``e_s =
+    exp(-(d_s - d_min) / pool_db)``. A floor whose every scan is ``max_db``
+    past the best is capped whole. The marginal is ``ln mean_j
+    exp(rescale · ln L_j)`` over the floor's own points.
+    """
+    best = np.inf
+    for s in range(d.size):
+        best = min(best, d[s])
+    e = np.empty(d.size)
+    for s in range(d.size):
+        e[s] = math.exp(-(d[s] - best) / pool_db)
+    n_floors = point_start.size - 1
+    ll = np.empty(point_start[n_floors])
+    marginal = np.empty(n_floors)
+    capped = -nats * max_db
+    for f in range(n_floors):
+        lo, hi, own = point_start[f], point_start[f + 1], surveyed[f]
+        nearest = np.inf
+        for s in range(ref_start[f], ref_start[f + 1]):
+            nearest = min(nearest, d[s])
+        if not nearest < best + max_db + cap_margin_db:
+            ll[lo:hi] = capped
+            marginal[f] = rescale * capped
+            continue
+        top = -np.inf
+        for j in range(lo, hi):
+            pooled = 0.0
+            for k in range(indptr[j], indptr[j + 1]):
+                pooled += data[k] * e[indices[k]]
+            excess = min(-pool_db * math.log(max(pooled, 1e-300)), max_db)
+            ll[j] = -nats * excess
+            if j < lo + own:
+                top = max(top, rescale * ll[j])
+        if own == 0:
+            marginal[f] = -np.inf
+            continue
+        total = 0.0
+        for j in range(lo, lo + own):
+            total += math.exp(rescale * ll[j] - top)
+        marginal[f] = top + math.log(total) - math.log(own)
+    return ll, marginal
+
+
+@njit(cache=True)
+def propagate(
+    prob: np.ndarray, ij: np.ndarray, grid: np.ndarray, kernel: np.ndarray, h: int
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Move a distribution over reference points by a transition kernel.
+
+    Each point with probability spreads it over the cells within ``h`` of
+    its own, ``kernel[h + dr, h + dc]`` to the cell ``dr`` rows and ``dc``
+    columns away; mass landing on cells that are not reference points is
+    lost. A direct sum: a device's posterior holds a few hundred points and
+    the kernel a few hundred cells.
+
+    Parameters
+    ----------
+    prob : ndarray, shape (P,)
+        Probability of each reference point.
+    ij : ndarray of int, shape (P, 2)
+        Grid row and column of each point.
+    grid : ndarray of int, shape (ny, nx)
+        Point index of each grid cell, -1 where none.
+    kernel : ndarray, shape (2h + 1, 2h + 1)
+        From ``transition_kernel``.
+    h : int
+        Kernel half-width (cells).
+
+    Returns
+    -------
+    ndarray, shape (P,)
+        Σ_i p_i K(x_j - x_i) at every point j (not renormalised).
+    """
+    ny, nx = grid.shape
+    out = np.zeros(prob.size)
+    for i in range(prob.size):
+        p = prob[i]
+        if p <= 0.0:
+            continue
+        r, c = ij[i, 0], ij[i, 1]
+        for dr in range(max(-h, -r), min(h, ny - 1 - r) + 1):
+            for dc in range(max(-h, -c), min(h, nx - 1 - c) + 1):
+                j = grid[r + dr, c + dc]
+                if j >= 0:
+                    out[j] += p * kernel[h + dr, h + dc]
+    return out
+
+
+@njit(cache=True)
+def mixture_log_density(
+    xy: np.ndarray, centres: np.ndarray, weight: np.ndarray, sigma: float, floor_nats: float
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Return ln Σ_i w_i exp(-|x - c_i|² / 2σ²) at each of ``xy`` (n, 2).
+
+    Relative to its largest value at a centre, and at least ``-floor_nats``.
+    """
+    k = centres.shape[0]
+    scale = -0.5 / (sigma * sigma)
+    peak = 0.0
+    for a in range(k):
+        at = 0.0
+        for b in range(k):
+            dx, dy = centres[a, 0] - centres[b, 0], centres[a, 1] - centres[b, 1]
+            at += weight[b] * math.exp(scale * (dx * dx + dy * dy))
+        peak = max(peak, at)
+    log_peak = math.log(peak)
+    out = np.empty(xy.shape[0])
+    for j in range(xy.shape[0]):
+        density = 0.0
+        for b in range(k):
+            dx, dy = xy[j, 0] - centres[b, 0], xy[j, 1] - centres[b, 1]
+            density += weight[b] * math.exp(scale * (dx * dx + dy * dy))
+        out[j] = max(math.log(max(density, 1e-300)) - log_peak, -floor_nats)
+    return out
+
+
+def load_kernels() -> None:
+    """Run each kernel once on a tiny input, so it is compiled before a device needs it.
+
+    The first call in a process compiles it, or reads it from numba's disk cache.
+    """
+    one = np.zeros(1)
+    starts = np.array([0, 1], dtype=np.int64)
+    pooled_emission(
+        one, starts, starts, np.zeros(1, dtype=np.int32), np.ones(1), starts,
+        np.ones(1, dtype=np.int64), 3.0, 30.0, 0.5, 2.0, 1e-6,
+    )  # fmt: skip
+    cells = np.zeros((1, 2), dtype=np.int32)
+    propagate(np.ones(1), cells, np.zeros((1, 1), dtype=np.int32), np.ones((1, 1)), 0)
+    mixture_log_density(np.zeros((1, 2)), np.zeros((1, 2)), np.ones(1), 1.0, 30.0)
