@@ -334,8 +334,13 @@ class Pdr:
         t, x = t[keep], x[keep]
         if t.size == 0:
             return Steps()
-        if np.isnan(x[:, 1:]).any():
-            x[:, 1:] = forward_fill(x[:, 1:], self._fill[1:])
+        # a channel with gaps takes its last value; one never sent (nor before) stays NaN
+        missing = np.isnan(x[:, 1:])
+        gaps = np.flatnonzero(
+            missing.any(axis=0) & ~(missing.all(axis=0) & np.isnan(self._fill[1:]))
+        )
+        if gaps.size:
+            x[:, gaps + 1] = forward_fill(x[:, gaps + 1], self._fill[gaps + 1])
         self._fill = x[-1].copy()
         prev = np.concatenate([[self._t_raw if self._t_raw is not None else t[0]], t[:-1]])
         cuts = np.flatnonzero(t - prev > self.params.max_gap_ms)

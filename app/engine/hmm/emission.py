@@ -118,7 +118,8 @@ class EmissionModel:
         """Gather the survey scans and each point's kernel over its floor's scans.
 
         The kernels of every floor's points are one CSR matrix, points stacked
-        floor after floor, over all survey scans (floor f's in ``ref_blocks[f]``).
+        floor after floor, over all survey scans (floor f's in ``ref_blocks[f]``),
+        kept by point and by scan.
         """
         p = self.params
         self.references = ReferenceScans.from_maps(self.maps, self.n_tx)
@@ -152,9 +153,11 @@ class EmissionModel:
         self.pool_indptr = stacked.indptr.astype(np.int64)
         self.pool_indices = stacked.indices.astype(np.int32)
         self.pool_data = stacked.data.astype(np.float64)
+        by_scan = stacked.tocsc()
+        self.scan_indptr = by_scan.indptr.astype(np.int64)
+        self.scan_points = by_scan.indices.astype(np.int32)
         self.point_start = point_start
         self.surveyed = np.array(self.surveyed_points, dtype=np.int64)
-        self.ref_start = np.array([b.start for b in self.ref_blocks] + [start], dtype=np.int64)
 
     def _reach_pool(
         self, xy: np.ndarray, rows: np.ndarray, scans: np.ndarray, n_points: int
@@ -229,8 +232,8 @@ class EmissionModel:
                 lls, marginal = [np.zeros(m.n_points) for m in self.maps], np.zeros(len(self.maps))
             else:
                 ll, marginal = pooled_emission(
-                    d, self.ref_start, self.pool_indptr, self.pool_indices, self.pool_data,
-                    self.point_start, self.surveyed, p.knn_pool_db, p.knn_max_db,
+                    d, self.pool_indptr, self.pool_indices, self.pool_data, self.scan_indptr,
+                    self.scan_points, self.point_start, self.surveyed, p.knn_pool_db, p.knn_max_db,
                     p.emission_weight * p.knn_nats_per_db, rescale, _CAP_MARGIN_DB,
                 )  # fmt: skip
                 lls = np.split(ll, self.point_start[1:-1])

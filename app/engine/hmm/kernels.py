@@ -18,10 +18,11 @@ from numba import njit
 @njit(cache=True)
 def pooled_emission(
     d: np.ndarray,
-    ref_start: np.ndarray,
     indptr: np.ndarray,
     indices: np.ndarray,
     data: np.ndarray,
+    scan_indptr: np.ndarray,
+    scan_points: np.ndarray,
     point_start: np.ndarray,
     surveyed: np.ndarray,
     pool_db: float,
@@ -32,49 +33,58 @@ def pooled_emission(
 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Return every point's log-likelihood of a scan and each floor's log marginal.
 
-    ``d`` are the scan's distances to every survey scan (those of floor f at
-    ``ref_start[f]:ref_start[f+1]``). A point pools the survey scans around
-    it (row j of the CSR ``indptr, indices, data``; floor f's points at
-    ``point_start[f]:point_start[f+1]``, its first ``surveyed[f]`` its own):
-    ``ln L_j = -nats · min(-pool_db ln Σ_s K_js e_s, max_db)`` with ``e_s =
-    exp(-(d_s - d_min) / pool_db)``. A floor whose every scan is ``max_db``
-    past the best is capped whole. The marginal is ``ln mean_j
-    exp(rescale · ln L_j)`` over the floor's own points.
+    ``d`` are the scan's distances to every survey scan. A point pools the
+    survey scans around it (row j of the CSR ``indptr, indices, data``; the
+    points pooling scan s are ``scan_points[scan_indptr[s]:scan_indptr[s+1]]``;
+    floor f's points at ``point_start[f]:point_start[f+1]``, its first
+    ``surveyed[f]`` its own): ``ln L_j = -nats · min(-pool_db ln Σ_s K_js e_s,
+    max_db)`` with ``e_s = exp(-(d_s - d_min) / pool_db)``. The marginal is
+    ``ln mean_j exp(rescale · ln L_j)`` over a floor's own points.
+
+    A point whose every scan is ``max_db`` past the best is capped, whatever
+    its sum (its rows' weights sum to at most 1): only points pooling a scan
+    within ``max_db`` of the best are summed, a few percent of a building's.
     """
     best = np.inf
     for s in range(d.size):
         best = min(best, d[s])
-    e = np.empty(d.size)
+    n_points = point_start[point_start.size - 1]
+    touched = np.zeros(n_points, dtype=np.bool_)
     for s in range(d.size):
-        e[s] = math.exp(-(d[s] - best) / pool_db)
-    n_floors = point_start.size - 1
-    ll = np.empty(point_start[n_floors])
-    marginal = np.empty(n_floors)
+        if d[s] < best + max_db + cap_margin_db:
+            for k in range(scan_indptr[s], scan_indptr[s + 1]):
+                touched[scan_points[k]] = True
     capped = -nats * max_db
-    for f in range(n_floors):
-        lo, hi, own = point_start[f], point_start[f + 1], surveyed[f]
-        nearest = np.inf
-        for s in range(ref_start[f], ref_start[f + 1]):
-            nearest = min(nearest, d[s])
-        if not nearest < best + max_db + cap_margin_db:
-            ll[lo:hi] = capped
-            marginal[f] = rescale * capped
+    ll = np.full(n_points, capped)
+    e = np.full(d.size, -1.0)
+    for j in range(n_points):
+        if not touched[j]:
             continue
-        top = -np.inf
-        for j in range(lo, hi):
-            pooled = 0.0
-            for k in range(indptr[j], indptr[j + 1]):
-                pooled += data[k] * e[indices[k]]
-            excess = min(-pool_db * math.log(max(pooled, 1e-300)), max_db)
-            ll[j] = -nats * excess
-            if j < lo + own:
-                top = max(top, rescale * ll[j])
+        pooled = 0.0
+        for k in range(indptr[j], indptr[j + 1]):
+            s = indices[k]
+            if e[s] < 0.0:
+                e[s] = math.exp(-(d[s] - best) / pool_db)
+            pooled += data[k] * e[s]
+        ll[j] = -nats * min(-pool_db * math.log(max(pooled, 1e-300)), max_db)
+    n_floors = point_start.size - 1
+    marginal = np.empty(n_floors)
+    for f in range(n_floors):
+        lo, own = point_start[f], surveyed[f]
         if own == 0:
             marginal[f] = -np.inf
             continue
-        total = 0.0
+        top = -np.inf
         for j in range(lo, lo + own):
-            total += math.exp(rescale * ll[j] - top)
+            top = max(top, rescale * ll[j])
+        total = 0.0
+        n_capped = 0
+        for j in range(lo, lo + own):
+            if touched[j]:
+                total += math.exp(rescale * ll[j] - top)
+            else:
+                n_capped += 1
+        total += n_capped * math.exp(rescale * capped - top)
         marginal[f] = top + math.log(total) - math.log(own)
     return ll, marginal
 
@@ -159,9 +169,10 @@ def load_kernels() -> None:
     """
     one = np.zeros(1)
     starts = np.array([0, 1], dtype=np.int64)
+    index = np.zeros(1, dtype=np.int32)
     pooled_emission(
-        one, starts, starts, np.zeros(1, dtype=np.int32), np.ones(1), starts,
-        np.ones(1, dtype=np.int64), 3.0, 30.0, 0.5, 2.0, 1e-6,
+        one, starts, index, np.ones(1), starts, index, starts, np.ones(1, dtype=np.int64),
+        3.0, 30.0, 0.5, 2.0, 1e-6,
     )  # fmt: skip
     cells = np.zeros((1, 2), dtype=np.int32)
     propagate(np.ones(1), cells, np.zeros((1, 1), dtype=np.int32), np.ones((1, 1)), 0)
