@@ -115,13 +115,18 @@ def smooth_positions(
 
 
 def load_solver() -> None:
-    """Solve a two-position track once: the compiled solver is ready before a device needs it.
+    """Smooth a two-position track once, whole and by the fixed lag: solvers compiled early.
 
-    The first solve in a process compiles it, or reads it from numba's disk cache.
+    They are ready before a device needs them: the first solve in a process compiles
+    them, or reads them from numba's disk cache.
     """
     smooth_positions(
         np.array([0, 1000]), np.zeros((2, 2)), np.ones(2), np.zeros((2, 2)), SmootherParams()
     )
+    smoother = FixedLagSmoother(SmootherParams(lag_ms=1000))
+    for t in (0, 1000):
+        at = Estimate(t, 0.0, 0.0, 0.0, 0, heading=0.0, accuracy=1.0, speed=0.0, method="")
+        smoother.push([at])
 
 
 @njit(cache=True)
@@ -287,7 +292,16 @@ class FixedLagSmoother:
         t = self._columns[0]
         horizon = max(int(t[-1]), now_t if now_t is not None else -1)
         due = np.flatnonzero((t > self.done_t) & (t <= horizon - p.lag_ms))
-        out = [replace(self._refine(int(i)), smoothed=True) for i in due]
+        _, xy, sigma, odo, floor = self._columns
+        refined = _refine_held(
+            due, t, xy, sigma, odo, floor, int(p.window_ms), int(p.lag_ms),
+            float(p.fix_scale), float(p.fix_floor_m), float(p.motion_std_m),
+            float(p.motion_std_per_s), float(p.free_speed_mps),
+        )  # fmt: skip
+        out = [
+            replace(self.held[i], x=float(x), y=float(y), smoothed=True)
+            for i, (x, y) in zip(due.tolist(), refined.tolist(), strict=True)
+        ]
         if due.size:
             self.done_t = int(t[due[-1]])
         first = int(np.searchsorted(t, self.done_t - p.window_ms, side="left"))
@@ -295,19 +309,6 @@ class FixedLagSmoother:
             self.held = self.held[first:]
             self._columns = tuple(column[first:] for column in self._columns)
         return out
-
-    def _refine(self, i: int) -> Estimate:
-        """Return held position i solved with its floor run's positions in its window."""
-        p, e = self.params, self.held[i]
-        t, xy, sigma, odo, floor = self._columns
-        lo = int(np.searchsorted(t, e.t - p.window_ms, side="left"))
-        hi = int(np.searchsorted(t, e.t + p.lag_ms, side="right"))
-        # only the floor run holding position i
-        other = np.flatnonzero(floor[lo:hi] != floor[i]) + lo
-        lo = max(lo, int(other[other < i].max(initial=lo - 1)) + 1)
-        hi = min(hi, int(other[other > i].min(initial=hi)))
-        x, y = smooth_positions(t[lo:hi], xy[lo:hi], sigma[lo:hi], odo[lo:hi], p)[i - lo]
-        return replace(e, x=float(x), y=float(y))
 
     def flush(self) -> list[Estimate]:
         """Return every held position not yet refined, refined with what is known (stream end)."""
@@ -325,3 +326,46 @@ def _estimate(fields: dict[str, Any]) -> Estimate:
     """Return an estimate from its ``asdict`` fields read back from JSON."""
     odometry = fields.get("odometry")
     return Estimate(**(fields | {"odometry": None if odometry is None else tuple(odometry)}))
+
+
+@njit(cache=True)
+def _refine_held(
+    due: np.ndarray,
+    t: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+    odometry: np.ndarray,
+    floor: np.ndarray,
+    window_ms: int,
+    lag_ms: int,
+    fix_scale: float,
+    fix_floor_m: float,
+    motion_std_m: float,
+    motion_std_per_s: float,
+    free_speed_mps: float,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Return each due held position solved with its floor run's positions in its window.
+
+    The window of position i reaches ``window_ms`` before it and ``lag_ms``
+    after it, and stops where the floor changes; shape (len(due), 2).
+    """
+    out = np.empty((due.size, 2))
+    for n in range(due.size):
+        i = due[n]
+        lo = np.searchsorted(t, t[i] - window_ms, side="left")
+        hi = np.searchsorted(t, t[i] + lag_ms, side="right")
+        # only the floor run holding position i
+        a = i
+        while a > lo and floor[a - 1] == floor[i]:
+            a -= 1
+        b = i + 1
+        while b < hi and floor[b] == floor[i]:
+            b += 1
+        if b - a < 2:
+            out[n] = xy[i]
+            continue
+        out[n] = _solve_track(
+            t[a:b], xy[a:b], sigma[a:b], odometry[a:b], fix_scale, fix_floor_m,
+            motion_std_m, motion_std_per_s, free_speed_mps,
+        )[i - a]  # fmt: skip
+    return out
