@@ -106,6 +106,13 @@ def smooth_positions(
         np.asarray(xy, dtype=float),
         np.asarray(sigma, dtype=float),
         np.asarray(odometry, dtype=float),
+        _errors(params),
+    )
+
+
+def _errors(params: SmootherParams) -> tuple[float, float, float, float, float]:
+    """Return the fix and motion error constants the compiled solvers take, in their order."""
+    return (
         float(params.fix_scale),
         float(params.fix_floor_m),
         float(params.motion_std_m),
@@ -135,18 +142,15 @@ def _solve_track(
     xy: np.ndarray,
     sigma: np.ndarray,
     odometry: np.ndarray,
-    fix_scale: float,
-    fix_floor_m: float,
-    motion_std_m: float,
-    motion_std_per_s: float,
-    free_speed_mps: float,
+    errors: tuple[float, float, float, float, float],
 ) -> np.ndarray:  # pragma: no cover - compiled
     """Build and solve the smoother's tridiagonal normal equations (n ≥ 2).
 
     A live device solves a few dozen positions several times a second: one
     compiled pass costs a few microseconds where numpy's array calls and the
-    banded LAPACK wrapper cost some 40.
+    banded LAPACK wrapper cost some 40. ``errors`` are ``_errors(params)``.
     """
+    fix_scale, fix_floor_m, motion_std_m, motion_std_per_s, free_speed_mps = errors
     n = t.size
     diag = np.empty(n)
     off = np.zeros(n)  # off[i] couples positions i and i + 1
@@ -294,10 +298,8 @@ class FixedLagSmoother:
         due = np.flatnonzero((t > self.done_t) & (t <= horizon - p.lag_ms))
         _, xy, sigma, odo, floor = self._columns
         refined = _refine_held(
-            due, t, xy, sigma, odo, floor, int(p.window_ms), int(p.lag_ms),
-            float(p.fix_scale), float(p.fix_floor_m), float(p.motion_std_m),
-            float(p.motion_std_per_s), float(p.free_speed_mps),
-        )  # fmt: skip
+            due, t, xy, sigma, odo, floor, int(p.window_ms), int(p.lag_ms), _errors(p)
+        )
         out = [
             replace(self.held[i], x=float(x), y=float(y), smoothed=True)
             for i, (x, y) in zip(due.tolist(), refined.tolist(), strict=True)
@@ -338,11 +340,7 @@ def _refine_held(
     floor: np.ndarray,
     window_ms: int,
     lag_ms: int,
-    fix_scale: float,
-    fix_floor_m: float,
-    motion_std_m: float,
-    motion_std_per_s: float,
-    free_speed_mps: float,
+    errors: tuple[float, float, float, float, float],
 ) -> np.ndarray:  # pragma: no cover - compiled
     """Return each due held position solved with its floor run's positions in its window.
 
@@ -364,8 +362,5 @@ def _refine_held(
         if b - a < 2:
             out[n] = xy[i]
             continue
-        out[n] = _solve_track(
-            t[a:b], xy[a:b], sigma[a:b], odometry[a:b], fix_scale, fix_floor_m,
-            motion_std_m, motion_std_per_s, free_speed_mps,
-        )[i - a]  # fmt: skip
+        out[n] = _solve_track(t[a:b], xy[a:b], sigma[a:b], odometry[a:b], errors)[i - a]
     return out
