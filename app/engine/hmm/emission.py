@@ -187,7 +187,7 @@ class EmissionModel:
         threads on the same model can only miss it, never read another scan's.
         """
         assert self.references is not None
-        key = np.asarray(tx, np.int64).tobytes() + np.asarray(rssi, np.float64).tobytes()
+        key = _scan_key(tx, rssi)
         cached = self._cache
         if cached is not None and cached[0] == key:
             return cached[1]
@@ -215,7 +215,7 @@ class EmissionModel:
 
         Cached for the last scan, read and replaced whole as ``_distances``' cache.
         """
-        key = np.asarray(tx, np.int64).tobytes() + np.asarray(rssi, np.float64).tobytes()
+        key = _scan_key(tx, rssi)
         cached = self._evidence
         if cached is not None and cached[0] == key:
             return cached[1], cached[2]
@@ -379,3 +379,8 @@ class EmissionModel:
         # w = 1 / (d + ε)
         w = 1.0 / (d[near] + 1e-3)
         return w @ self.xy[f][near] / w.sum()
+
+
+def _scan_key(tx: np.ndarray, rssi: np.ndarray) -> bytes:
+    """Return the bytes that identify a scan in the model's last-scan caches."""
+    return np.asarray(tx, np.int64).tobytes() + np.asarray(rssi, np.float64).tobytes()
