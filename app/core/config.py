@@ -183,11 +183,12 @@ class Settings(BaseSettings):
 
     # Workers.
     wifi_max_age_ms: int = Field(
-        default=2000,
+        default=10_000,
         ge=0,
         le=600_000,
-        description="A WiFi reading whose last_seen is older than this before its scan's t is "
-        "a cached repeat of an earlier scan, not a new measurement, and is dropped.",
+        description="A WiFi reading whose last_seen is older than this before its scan's t "
+        "describes another place and is dropped at ingest. Below it, a site's radio-map build "
+        "chooses how old a reading its engines use (the tuning's wifi_max_age_ms).",
     )
     time_outlier_s: float = Field(
         default=3600.0,

@@ -39,7 +39,7 @@ class Metrics:
         )
         self.worker_samples = Counter(
             "locus_worker_samples",
-            "Samples by outcome in the workers (used, late, duplicate, unknown id)",
+            "Samples by outcome in the workers (used, late, duplicate, unknown id, stale WiFi)",
             ["outcome"],
             registry=r,
         )

@@ -25,6 +25,7 @@ from app.engine.hmm.params import HmmParams
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, fit_pdr_constants, wrap_deg
 from app.engine.smoothing import SmootherParams
+from app.engine.wifi_age import DEFAULT_MAX_AGE_MS
 from app.engine.wknn import WknnParams
 
 HEADING_STD_RANGE_DEG = (5.0, 45.0)
@@ -88,6 +89,9 @@ class SiteTuning:
         Factor on the positions' σ in the fixed-lag smoother.
     pass_fix_scale : float
         The same in the full backward pass over stored history.
+    wifi_max_age_ms : int
+        Oldest a WiFi reading's last-seen time may be before its scan's
+        time (ms) for the engines to use it (``app.engine.wifi_age``).
     """
 
     weinberg_k: float
@@ -102,6 +106,7 @@ class SiteTuning:
     fix_nats: float = HmmParams().fix_nats
     lag_fix_scale: float = SmootherParams().fix_scale
     pass_fix_scale: float = SmootherParams().fix_scale
+    wifi_max_age_ms: int = DEFAULT_MAX_AGE_MS
 
     @classmethod
     def defaults(cls) -> SiteTuning:

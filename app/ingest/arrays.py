@@ -47,6 +47,13 @@ def wifi_times(wifi: Sequence[dict[str, Any]]) -> list[int]:
     ]
 
 
+def reading_age(reading: dict[str, Any]) -> int:
+    """Return how long before its scan's ``t`` a WiFi reading was last heard (ms; 0 without
+    ``last_seen``, where the reading's own ``t`` is when it was heard)."""
+    seen = reading.get("last_seen")
+    return 0 if seen is None else int(reading["t"]) - int(seen)
+
+
 def _rot4(rot: list[float] | None) -> tuple[float, ...]:
     if rot is None:
         return (np.nan,) * 4

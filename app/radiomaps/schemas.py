@@ -6,6 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel
 
+from app.engine.wifi_age import DEFAULT_MAX_AGE_MS
+
 
 class FloorBuild(BaseModel):
     """One floor's radio map: reference points and how much of the walkable area they cover."""
@@ -87,6 +89,9 @@ class SiteTuningRead(BaseModel):
     fix_nats: float = 10.0
     lag_fix_scale: float = 1.0
     pass_fix_scale: float = 1.0
+    wifi_max_age_ms: int = DEFAULT_MAX_AGE_MS
+    """Oldest a WiFi reading's last-seen time may be before its scan's time for the engines
+    to use it (ms)."""
 
 
 class TuningScores(BaseModel):
@@ -101,6 +106,7 @@ class TuningScores(BaseModel):
     emission_log_score_by_weight: dict[str, float | None]
     floor_log_score_by_weight: dict[str, float | None]
     emission_scans: int
+    knn_walk_error_m_by_wifi_max_age_ms: dict[str, float | None] = {}
 
 
 class BuildSummary(BaseModel):

@@ -55,8 +55,14 @@ from app.engine.tuning import (
     one_standard_error_choice,
     tune_site,
 )
+from app.engine.wifi_age import (
+    AGE_CANDIDATES_MS,
+    DEFAULT_MAX_AGE_MS,
+    paired_scores,
+    walk_errors,
+)
 from app.engine.wknn import WknnParams
-from app.ingest.arrays import imu_arrays, wifi_times
+from app.ingest.arrays import imu_arrays, reading_age, wifi_times
 from app.radiomaps.codec import encode_map
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.sites.assembly import LoadedSite, assemble_site
@@ -86,6 +92,20 @@ class SurveyInput:
     imu: ImuSamples
     ble: tuple[np.ndarray, list[str], np.ndarray]
     """The BLE readings (t, ids, RSSI): they calibrate beacons, and make no fingerprint."""
+    age: np.ndarray
+    """How long before its scan's time each WiFi reading was last heard (ms; 0 unless the
+    reading carries ``last_seen``)."""
+
+    def heard_within(self, max_age_ms: int) -> SurveyInput:
+        """Return the survey with only the WiFi readings last heard within ``max_age_ms``."""
+        keep = self.age <= max_age_ms
+        return replace(
+            self,
+            t=self.t[keep],
+            ids=[i for i, k in zip(self.ids, keep.tolist(), strict=True) if k],
+            rssi=self.rssi[keep],
+            age=self.age[keep],
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,6 +143,7 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
     t: list[int] = []
     ids: list[str] = []
     rssi: list[float] = []
+    age: list[int] = []
     # WiFi only: a WiFi scan reports every access point heard at one time, the unit a
     # fingerprint is made of; BLE advertisements arrive one by one, each with its own time,
     # and taken as scans they would read as scans that missed every access point.
@@ -131,6 +152,7 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
         t.append(at)
         ids.append(radio_id(s["id"]))
         rssi.append(float(s["rssi"]))
+        age.append(reading_age(s))
     ble = samples.get("ble", ())
     return SurveyInput(
         survey_id=row.id,
@@ -145,6 +167,7 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
             [radio_id(s["id"]) for s in ble],
             np.array([s["rssi"] for s in ble], dtype=float),
         ),
+        age=np.array(age, dtype=np.int64),
     )
 
 
@@ -195,6 +218,17 @@ def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...
     return Survey.concat(wifi), Survey.concat(ble), tx_ids, survey_ids
 
 
+def _wifi_age_scores(inputs: BuildInputs, folds: int) -> dict[float, list[float]]:
+    """Return, per candidate oldest WiFi reading age (ms), each survey walk's held-out
+    per-scan k-NN error, over the walks every candidate scored (``app.engine.wifi_age``)."""
+    by_age = {}
+    for age in AGE_CANDIDATES_MS:
+        fresh = replace(inputs, surveys=tuple(s.heard_within(age) for s in inputs.surveys))
+        survey, _, tx_ids, _ = _located_survey(fresh)
+        by_age[age] = walk_errors(survey, len(tx_ids), folds)
+    return paired_scores(by_age) if all(by_age.values()) else {}
+
+
 def _r(value: float, digits: int = 3) -> float | None:
     return None if not np.isfinite(value) else round(float(value), digits)
 
@@ -217,6 +251,13 @@ def compute_build(
     site = inputs.site
     if not inputs.surveys:
         raise Conflict(f"site '{site.site_id}' has no surveys on its current floors")
+    age_scores = _wifi_age_scores(inputs, folds) if tune else {}
+    max_age = (
+        int(one_standard_error_choice(age_scores, DEFAULT_MAX_AGE_MS))
+        if age_scores
+        else DEFAULT_MAX_AGE_MS
+    )
+    inputs = replace(inputs, surveys=tuple(s.heard_within(max_age) for s in inputs.surveys))
     survey, beacons, tx_ids, _ = _located_survey(inputs)
     if survey.reading_rssi.size == 0 and beacons.reading_rssi.size == 0:
         raise Conflict(
@@ -284,7 +325,9 @@ def compute_build(
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     chosen = replays.choose()
-    tuning = tune_site(measured, validation, chosen[0] if chosen else None)
+    tuning = replace(
+        tune_site(measured, validation, chosen[0] if chosen else None), wifi_max_age_ms=max_age
+    )
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1])
     radius = replays.radius_calibration(tuning.emission_weight, tuning.fix_nats)
@@ -337,7 +380,7 @@ def compute_build(
         tx_ids,
         accuracy,
         tuning,
-        _tuning_scores(validation, replays, smoothers),
+        _tuning_scores(validation, replays, smoothers, age_scores),
     )
     report(1.0)
     return BuildResult(
@@ -527,6 +570,7 @@ def _tuning_scores(
     validation: CrossValidation | None,
     replays: HmmReplays,
     smoothers: dict[str, dict[float, list[float]]],
+    age_scores: dict[float, list[float]],
 ) -> dict[str, Any] | None:
     """Return the held-out figure of every candidate the tuning chose among."""
     if validation is None:
@@ -550,6 +594,9 @@ def _tuning_scores(
         },
         "floor_log_score_by_weight": {str(w): _r(v, 4) for w, v in validation.floor_score.items()},
         "emission_scans": validation.emission_scans,
+        "knn_walk_error_m_by_wifi_max_age_ms": {
+            str(int(a)): _r(float(np.mean(v))) for a, v in age_scores.items() if v
+        },
     }
 
 

@@ -2,26 +2,39 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 
 from app.engine.samples import Batch, Fixes, Pressure, Ranges, RssiReadings, Sightings
-from app.ingest.arrays import imu_arrays, wifi_times
+from app.ingest.arrays import imu_arrays, reading_age, wifi_times
 from app.sites.assembly import LoadedSite
 from app.sites.radio_ids import radio_id
 
 _A = TypeVar("_A")
 
 
-def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tuple[Batch, int]:
-    """Return the engine batch (sorted by t within each kind) and the count of unknown ids."""
+@dataclass
+class Skipped:
+    """Samples a batch left out: ``unknown_ids`` name nothing the site has, ``stale`` are WiFi
+    readings last heard longer before their scan than the site's engines use."""
+
+    unknown_ids: int = 0
+    stale: int = 0
+
+
+def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tuple[Batch, Skipped]:
+    """Return the engine batch (sorted by t within each kind) and what it left out."""
     unknown = 0
+    max_age = site.tuning.wifi_max_age_ms
+    wifi = samples.get("wifi", ())
+    fresh = [s for s in wifi if reading_age(s) <= max_age]
     t_rssi: list[int] = []
     tx: list[int] = []
     rssi: list[float] = []
     for kind in ("wifi", "ble"):
-        items = samples.get(kind, ())
+        items = fresh if kind == "wifi" else samples.get(kind, ())
         times = wifi_times(items) if kind == "wifi" else [s["t"] for s in items]
         for s, t in zip(items, times, strict=True):
             row = site.transmitter_index.get(radio_id(s["id"]))
@@ -100,7 +113,7 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
             )
         ),
     )
-    return batch, unknown
+    return batch, Skipped(unknown_ids=unknown, stale=len(wifi) - len(fresh))
 
 
 def _sorted(arrays: _A) -> _A:

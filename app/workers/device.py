@@ -11,7 +11,7 @@ from shapely import Point
 from app.core.identity import DeviceKey
 from app.engine.samples import Batch, Estimate
 from app.sites.assembly import LoadedSite
-from app.workers.convert import to_batch
+from app.workers.convert import Skipped, to_batch
 from app.workers.messages import Position, Sample, ZoneEvent
 from app.workers.trackers import (
     RADIO_KINDS,
@@ -152,33 +152,33 @@ class DeviceSession:
         self.last_seen = now
         return accepted, late, duplicate
 
-    def take(self, *, reorder_ms: int, flush: bool) -> tuple[Batch | None, int]:
+    def take(self, *, reorder_ms: int, flush: bool) -> tuple[Batch | None, Skipped]:
         """Release what is older than the reorder window (all of it on flush) as engine arrays.
 
-        Returns the batch (None when nothing is released) and how many of its
-        samples name ids the site does not know. The first batch that can
+        Returns the batch (None when nothing is released) and what of it the
+        engines do not use (``Skipped``). The first batch that can
         place the device (radio, ranges, fixes or sightings of the site's
         infrastructure) chooses its filter; inertial samples before it wait
         with it, up to ``CHOOSE_WITHIN_MS``, so a phone whose first upload
         holds only IMU is not given a filter that cannot use its WiFi.
         """
         if not self.buffer:
-            return None, 0
+            return None, Skipped()
         watermark = self.max_t if flush else self.max_t - reorder_ms
         self.buffer.sort(key=lambda item: item[0])
         cut = 0
         while cut < len(self.buffer) and self.buffer[cut][0] <= watermark:
             cut += 1
         if cut == 0:
-            return None, 0
+            return None, Skipped()
         ready = self.buffer[:cut]
         grouped: dict[str, list[Sample]] = {}
         for _, kind, sample in ready:
             grouped.setdefault(kind, []).append(sample)
-        batch, unknown = to_batch(self.site, grouped)
+        batch, skipped = to_batch(self.site, grouped)
         waited = self.max_t - self.buffer[0][0]
         if self.tracker is None and not (_places(batch) or waited >= CHOOSE_WITHIN_MS):
-            return None, 0
+            return None, Skipped()
         self.buffer = self.buffer[cut:]
         # a late WiFi reading may be released behind samples already used
         self.processed_t = max(self.processed_t, ready[-1][0])
@@ -191,7 +191,7 @@ class DeviceSession:
         if self.tracker is None:
             kind = choose_kind(self.site, batch, self.kinds)
             self.tracker = make_tracker(kind, self.engines, self.device_id, None)
-        return batch, unknown
+        return batch, skipped
 
     def flush_filter(self) -> list[Estimate]:
         """Return what the filter still holds back: the device went quiet, its recording ended."""

@@ -242,6 +242,7 @@ class Runtime:
             ("late", "late"),
             ("duplicate", "duplicate"),
             ("unknown_id", "unknown_ids"),
+            ("stale", "stale"),
         ):
             delta = counters.get(key, 0) - previous.get(key, 0)
             self.metrics.worker_samples.labels(outcome).inc(

@@ -212,8 +212,9 @@ class Shard:
         return results
 
     def _take(self, device: DeviceSession, *, flush: bool) -> Batch | None:
-        batch, unknown = device.take(reorder_ms=self.settings.reorder_window_ms, flush=flush)
-        self.counters["unknown_ids"] += unknown
+        batch, skipped = device.take(reorder_ms=self.settings.reorder_window_ms, flush=flush)
+        self.counters["unknown_ids"] += skipped.unknown_ids
+        self.counters["stale"] += skipped.stale
         return batch
 
     def _run(

@@ -97,10 +97,10 @@ CASES: dict[str, Case] = {
         status=202,
         says="finite_number",
     ),
-    "ingest: only cached WiFi, last heard 5 s before its scan": Case(
+    "ingest: only cached WiFi, last heard 12 s before its scan": Case(
         "POST",
         "/v1/ingest",
-        _batch(wifi=[{"t": T0, "id": AP, "rssi": -50, "last_seen": T0 - 5000}]),
+        _batch(wifi=[{"t": T0, "id": AP, "rssi": -50, "last_seen": T0 - 12_000}]),
         status=202,
         says="stale",
     ),

@@ -12,6 +12,8 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
+from app.core.config import Settings
+from app.engine.wifi_age import DEFAULT_MAX_AGE_MS
 from tests.conftest import ADMIN_KEY, floor_doc
 
 T0 = 1_700_000_000_000
@@ -127,7 +129,7 @@ def test_cached_wifi_repeats_are_left_out_by_their_last_seen(
         "site_id": site_id,
         "wifi": [
             {"t": scan_t, "id": AP[0], "rssi": -50, "last_seen": scan_t - 500},
-            {"t": scan_t, "id": AP[1], "rssi": -55, "last_seen": scan_t - 8000},
+            {"t": scan_t, "id": AP[1], "rssi": -55, "last_seen": scan_t - 12_000},
             {"t": scan_t, "id": AP[2], "rssi": -60, "last_seen": scan_t - 2000},
         ],
     }
@@ -145,6 +147,38 @@ def test_cached_wifi_repeats_are_left_out_by_their_last_seen(
     answer = r.json()
     assert answer["accepted"] == 0 and answer["positions"] == []
     assert [d["code"] for d in answer["dropped"]] == ["stale"]
+
+
+def _stale_count(client: TestClient, admin: dict) -> float:
+    for line in client.get("/metrics", headers=admin).text.splitlines():
+        if line.startswith('locus_worker_samples_total{outcome="stale"}'):
+            return float(line.split()[-1])
+    return 0.0
+
+
+def test_wifi_older_than_the_site_uses_is_accepted_and_counted_stale_by_the_workers(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    # no build: the site's engines use readings up to the default age, the ingest keeps
+    # them up to its own cap; what lies between is accepted, left out, and counted
+    assert DEFAULT_MAX_AGE_MS < Settings().wifi_max_age_ms
+    scan_t = T0 + 5000
+    body = {
+        "device_id": f"{site_id}-aged",
+        "site_id": site_id,
+        "wifi": [
+            {"t": scan_t, "id": AP[0], "rssi": -50, "last_seen": scan_t - 500},
+            {"t": scan_t, "id": AP[1], "rssi": -55, "last_seen": scan_t - DEFAULT_MAX_AGE_MS - 1},
+        ],
+    }
+    before = _stale_count(client, admin)
+    r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
+    assert r.status_code == 200, r.text
+    assert r.json()["accepted"] == 2 and r.json()["dropped"] == []
+    deadline = time.monotonic() + 10.0
+    while _stale_count(client, admin) < before + 1 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _stale_count(client, admin) == before + 1
 
 
 DAY_MS = 24 * 3600 * 1000

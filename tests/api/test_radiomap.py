@@ -22,6 +22,7 @@ from app.engine.pdr import detect_steps
 from app.engine.samples import Estimate
 from app.engine.smoothing import SmootherParams
 from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES
+from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
 from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.score import estimates_from_positions
 from app.evaluation.metrics import truth_at
@@ -406,6 +407,11 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
         by_scale = {float(c): v for c, v in scores[f"{stage}_walk_error_m_by_fix_scale"].items()}
         assert set(by_scale) == set(SMOOTHER_FIX_SCALE_CANDIDATES)
         assert by_scale[tuning[key]] <= by_scale[SmootherParams().fix_scale]
+    # how old a WiFi reading may be: every candidate age scored by the per-scan k-NN on
+    # held-out walks, the chosen one no worse than the default's
+    by_age = {int(a): v for a, v in scores["knn_walk_error_m_by_wifi_max_age_ms"].items()}
+    assert set(by_age) == set(AGE_CANDIDATES_MS)
+    assert by_age[tuning["wifi_max_age_ms"]] <= by_age[DEFAULT_MAX_AGE_MS]
 
 
 @needs_site1

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from fastapi.testclient import TestClient
 
+from app.core.config import Settings
 from app.datasets import data_dir
 from app.datasets.ilc import fresh_wifi, read_walk, site_walks
 from app.importers.ilc import survey_body
@@ -199,7 +200,7 @@ def test_a_survey_sent_as_android_reports_scans_keeps_only_fresh_readings(
     r = client.post(f"/v1/sites/{site_id}/surveys", json=body, headers=admin)
     assert r.status_code == 201, r.text
     answer = r.json()
-    fresh = fresh_wifi(scans)
+    fresh = fresh_wifi(scans, Settings().wifi_max_age_ms)
     assert 0 < len(fresh) < len(scans)
     assert answer["counts"]["wifi"] == len(fresh)
     assert answer["dropped_total"] == len(scans) - len(fresh)

@@ -23,8 +23,8 @@ def _feed(
     for i, samples in enumerate(uploads):
         session.add({"uwb": samples}, now=NOW)
         flush = flush_at_end and i == len(uploads) - 1
-        batch, unknown = session.take(reorder_ms=REORDER_MS, flush=flush)
-        assert unknown == 0
+        batch, skipped = session.take(reorder_ms=REORDER_MS, flush=flush)
+        assert skipped.unknown_ids == 0
         if batch is not None:
             assert session.tracker is not None
             assert np.all(np.diff(batch.ranges.t) >= 0), "a released batch is in time order"
@@ -110,3 +110,25 @@ def test_wifi_heard_before_inertial_samples_already_used_is_not_late(
     # WiFi further behind everything than a scan takes is late all the same
     stale = [{"t": T0 + 3900 - SCAN_DELIVERY_MS, "id": "aa:00:00:00:00:02", "rssi": -70}]
     assert session.add({"wifi": stale}, now=NOW) == (0, 1, 0)
+
+
+def test_wifi_heard_longer_before_its_scan_than_the_site_uses_is_counted_stale(
+    engines: SiteEngines,
+) -> None:
+    # the site's build chose how old a reading its engines use; older ones are counted
+    max_age = engines.site.tuning.wifi_max_age_ms
+    beacon = "FDA50693-A4E2-4FB1-AFCF-C6EB07647825_1_{}"
+    scan_t = T0 + 10_000
+    scan = [
+        {"t": scan_t, "id": beacon.format(1), "rssi": -60, "last_seen": scan_t - 500},
+        {"t": scan_t, "id": beacon.format(2), "rssi": -65, "last_seen": scan_t - max_age},
+        {"t": scan_t, "id": beacon.format(3), "rssi": -70, "last_seen": scan_t - max_age - 1},
+    ]
+    session = DeviceSession(device_id="phone", engines=engines, now=NOW)
+    assert session.add({"wifi": scan}, now=NOW) == (3, 0, 0)
+    batch, skipped = session.take(reorder_ms=REORDER_MS, flush=True)
+    assert batch is not None
+    assert (skipped.stale, skipped.unknown_ids) == (1, 0)
+    # the two used are one scan, timed when its freshest reading was heard
+    assert batch.rssi.t.tolist() == [scan_t - 500, scan_t - 500]
+    assert sorted(batch.rssi.rssi.tolist()) == [-65.0, -60.0]
