@@ -22,7 +22,8 @@ from app.engine.wknn import unique_readings
 from app.evaluation.ilc.score import WalkScore, score_walk
 
 MAX_AGE_MS = 2000
-"""Readings heard longer than this before their scan are cached repeats and left out."""
+"""Readings heard longer than this before their scan are left out: a fixed baseline, apart
+from the age the site's build chooses for its own engines."""
 
 
 def _readings(walk: Walk, index: dict[str, int]) -> RssiReadings:
