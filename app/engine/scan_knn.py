@@ -105,8 +105,9 @@ class ReferenceScans:
         # w_a = (1 / walks that heard a)^p
         self.tx_weight = np.where(self.usable, np.maximum(walks_heard, 1.0) ** -p.rarity_power, 0.0)
         keep = self.usable[tx]
+        self.n_usable = int(self.usable.sum())
         self.column = np.full(n_tx, -1, dtype=np.int64)
-        self.column[self.usable] = np.arange(int(self.usable.sum()))
+        self.column[self.usable] = np.arange(self.n_usable)
         # one entry per (scan, transmitter) heard, the strongest reading's level kept
         scan = survey.reading_scan[keep].astype(np.int64)
         col = self.column[tx[keep]]
@@ -117,7 +118,7 @@ class ReferenceScans:
         first[1:] = (col[1:] != col[:-1]) | (scan[1:] != scan[:-1])
         strongest = first & (level > 0)
         col, scan, level = col[strongest], scan[strongest], level[strongest]
-        self.col_start = np.searchsorted(col, np.arange(int(self.usable.sum()) + 1))
+        self.col_start = np.searchsorted(col, np.arange(self.n_usable + 1))
         self.ref_scan = scan.astype(np.int32)
         self.ref_level = level
         # the same entries by scan, to compare a query with a few reference scans
@@ -224,12 +225,12 @@ class ReferenceScans:
         points than the survey did. None when they share none.
         """
         tx, level = self._query(tx, rssi)
-        query = np.full(int(self.usable.sum()), np.nan)
+        query = np.full(self.n_usable, np.nan)
         query[self.column[tx]] = level
-        entries = np.concatenate(
-            [np.arange(self.scan_start[j], self.scan_start[j + 1]) for j in scans]
-            or [np.zeros(0, dtype=np.int64)]
-        )
+        scans = np.asarray(scans, dtype=np.int64)
+        first, count = self.scan_start[scans], self.scan_start[scans + 1] - self.scan_start[scans]
+        # every entry of the scans, scan after scan: first_j + 0 … count_j - 1
+        entries = np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())
         diff = query[self.scan_col[entries]] - self.scan_level[entries]
         diff = diff[np.isfinite(diff)]
         return float(np.median(diff)) if diff.size else None
