@@ -23,7 +23,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from app.engine.radiomap import Survey
-from app.engine.scan_knn import ReferenceScans, ScanKnnParams
+from app.engine.scan_knn import ReferenceScans
 
 DEFAULT_MAX_AGE_MS = 5000
 """Oldest last-seen age (ms) a site without a build uses: the strongest published pipelines
@@ -36,9 +36,7 @@ WRONG_FLOOR_M = 20.0
 """Error (m) a scan located on a wrong floor counts as."""
 
 
-def walk_errors(
-    survey: Survey, n_tx: int, folds: int, *, every: int = 2, params: ScanKnnParams | None = None
-) -> dict[int, float]:
+def walk_errors(survey: Survey, n_tx: int, folds: int, *, every: int = 2) -> dict[int, float]:
     """Return each walk's mean per-scan k-NN error (m) with its fold's walks held out.
 
     Walk ``w`` is in fold ``w mod folds``; every ``every``-th scan of a
@@ -58,7 +56,7 @@ def walk_errors(
         held = fold_of_scan == fold
         if held.all() or not held.any():
             continue
-        refs = ReferenceScans(survey.select(~held), n_tx, params)
+        refs = ReferenceScans(survey.select(~held), n_tx)
         for j in np.flatnonzero(held)[::every]:
             rows = by_scan[starts[j] : starts[j + 1]]
             fix = refs.locate(survey.reading_tx[rows], survey.reading_rssi[rows])

@@ -7,6 +7,7 @@ import json
 import math
 import time
 import uuid
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
@@ -120,19 +121,21 @@ def test_impossible_values_drop_only_their_sample_or_field(
     assert 'locus_ingest_dropped_samples_total{kind="wifi",reason="finite_number"}' in metrics
 
 
+def _aged_scan(site_id: str, device_id: str, ages_ms: list[int]) -> dict[str, Any]:
+    """A batch of one WiFi scan whose i-th access point was last heard ``ages_ms[i]`` before
+    the scan completed."""
+    scan_t = T0 + 5000
+    wifi = [
+        {"t": scan_t, "id": AP[i], "rssi": -50 - 5 * i, "last_seen": scan_t - age}
+        for i, age in enumerate(ages_ms)
+    ]
+    return {"device_id": device_id, "site_id": site_id, "wifi": wifi}
+
+
 def test_cached_wifi_repeats_are_left_out_by_their_last_seen(
     client: TestClient, admin: dict, site_id: str
 ) -> None:
-    scan_t = T0 + 5000
-    body = {
-        "device_id": f"{site_id}-scan",
-        "site_id": site_id,
-        "wifi": [
-            {"t": scan_t, "id": AP[0], "rssi": -50, "last_seen": scan_t - 500},
-            {"t": scan_t, "id": AP[1], "rssi": -55, "last_seen": scan_t - 12_000},
-            {"t": scan_t, "id": AP[2], "rssi": -60, "last_seen": scan_t - 2000},
-        ],
-    }
+    body = _aged_scan(site_id, f"{site_id}-scan", [500, 12_000, 2000])
     r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
     assert r.status_code == 200, r.text
     answer = r.json()
@@ -162,15 +165,7 @@ def test_wifi_older_than_the_site_uses_is_accepted_and_counted_stale_by_the_work
     # no build: the site's engines use readings up to the default age, the ingest keeps
     # them up to its own cap; what lies between is accepted, left out, and counted
     assert DEFAULT_MAX_AGE_MS < Settings().wifi_max_age_ms
-    scan_t = T0 + 5000
-    body = {
-        "device_id": f"{site_id}-aged",
-        "site_id": site_id,
-        "wifi": [
-            {"t": scan_t, "id": AP[0], "rssi": -50, "last_seen": scan_t - 500},
-            {"t": scan_t, "id": AP[1], "rssi": -55, "last_seen": scan_t - DEFAULT_MAX_AGE_MS - 1},
-        ],
-    }
+    body = _aged_scan(site_id, f"{site_id}-aged", [500, DEFAULT_MAX_AGE_MS + 1])
     before = _stale_count(client, admin)
     r = client.post("/v1/ingest?wait=true", json=body, headers=admin)
     assert r.status_code == 200, r.text
