@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
+from app.engine import pdr_kernel as kernel
+from app.engine.pdr_kernel import NO_TIME
 from app.engine.samples import ImuSamples
 
 
@@ -117,86 +119,6 @@ class Steps:
         )
 
 
-def rotation_vector_heading(rot: np.ndarray) -> np.ndarray:
-    """Return the azimuth of the phone's +y axis from Android rotation vectors.
-
-    Parameters
-    ----------
-    rot : ndarray, shape (n, 3) or (n, 4)
-        Quaternion x, y, z[, w] rotating the device frame to east-north-up;
-        a missing or NaN w is implied as ``sqrt(1 - x² - y² - z²)``.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        Degrees clockwise from north in [0, 360); NaN where rot is NaN.
-    """
-    rot = np.asarray(rot, dtype=float)
-    x, y, z = rot[:, 0], rot[:, 1], rot[:, 2]
-    # w = sqrt(1 - x² - y² - z²) when the sender leaves it out
-    implied = np.sqrt(np.clip(1.0 - x * x - y * y - z * z, 0.0, None))
-    w = implied if rot.shape[1] < 4 else np.where(np.isnan(rot[:, 3]), implied, rot[:, 3])
-    # ψ = atan2(R₀₁, R₁₁) = atan2(2(xy - zw), 1 - 2(x² + z²)), the device y axis in ENU
-    psi = np.degrees(np.arctan2(2.0 * (x * y - z * w), 1.0 - 2.0 * (x * x + z * z)))
-    return np.mod(psi, 360.0)
-
-
-def magnetic_heading(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
-    """Return the tilt-compensated magnetic azimuth of the phone's +y axis (Android's method).
-
-    Parameters
-    ----------
-    acc : ndarray, shape (n, 3)
-        Accelerometer (m/s²), taken as the up direction in the device frame.
-    mag : ndarray, shape (n, 3)
-        Magnetic field (µT) in the device frame.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        Degrees clockwise from magnetic north in [0, 360); NaN where an input is NaN.
-    """
-    # H = m × a points east, M = a × H points north (both horizontal)
-    east = _cross(mag, acc)
-    north = _cross(acc, east)
-    # ψ = atan2(Ĥ_y, M̂_y): the device y axis' east and north components
-    psi = np.degrees(np.arctan2(east[:, 1] / _norm(east), north[:, 1] / _norm(north)))
-    return np.mod(psi, 360.0)
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return the row-wise cross product of (n, 3) arrays.
-
-    np.cross costs about 20 µs more a call, and the detector calls it twice a batch.
-    """
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
-
-
-def _norm(a: np.ndarray) -> np.ndarray:
-    """Return the Euclidean norm of each row of an (n, 3) array."""
-    return np.sqrt(np.add.reduce(a * a, axis=1))
-
-
-def yaw_rate(acc: np.ndarray, gyro: np.ndarray) -> np.ndarray:
-    """Return the rotation rate about the vertical, clockwise seen from above (rad/s).
-
-    Parameters
-    ----------
-    acc : ndarray, shape (n, 3)
-        Accelerometer (m/s²), giving the up direction.
-    gyro : ndarray, shape (n, 3)
-        Angular rate (rad/s), counter-clockwise positive about each device axis.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-    """
-    # r = -ω · a / |a|: counter-clockwise about up is a decreasing heading
-    return -np.sum(gyro * acc, axis=1) / _norm(acc)
-
-
 def weinberg_length(swing: np.ndarray, k: float) -> np.ndarray:
     """Return Weinberg step lengths (m) for acceleration swings a_max - a_min (m/s²)."""
     # L = K (a_max - a_min)^(1/4)
@@ -208,6 +130,20 @@ def lowpass_coefficients(params: PdrParams) -> tuple[np.ndarray, np.ndarray]:
     return _butter(params.lowpass_order, params.lowpass_hz, 1000.0 / params.grid_ms)
 
 
+def _lowpass_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Return the state that starts ``b / a`` in steady state for a unit input.
+
+    A copy: the compiled filter updates its state in place.
+    """
+    return _unit_zi(tuple(b), tuple(a)).copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _unit_zi(b: tuple[float, ...], a: tuple[float, ...]) -> np.ndarray:
+    """``scipy.signal.lfilter_zi``, once per filter: it costs more than a batch's filtering."""
+    return signal.lfilter_zi(np.array(b), np.array(a))
+
+
 @functools.lru_cache(maxsize=16)
 def _butter(order: int, cutoff_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
     """Design the filter once per setting: scipy takes 0.3 ms, and every new device needs it."""
@@ -217,11 +153,6 @@ def _butter(order: int, cutoff_hz: float, fs: float) -> tuple[np.ndarray, np.nda
     b.setflags(write=False)
     a.setflags(write=False)
     return b, a
-
-
-def local_maxima(f: np.ndarray) -> np.ndarray:
-    """Return indices i with f[i-1] < f[i] >= f[i+1] (interior samples only), shape (k,)."""
-    return np.flatnonzero((f[1:-1] > f[:-2]) & (f[1:-1] >= f[2:])) + 1
 
 
 def forward_fill(x: np.ndarray, last: np.ndarray) -> np.ndarray:
@@ -236,48 +167,21 @@ def forward_fill(x: np.ndarray, last: np.ndarray) -> np.ndarray:
     return np.where(idx >= 0, filled, last[None, :])
 
 
-def circular_mean_deg(s: np.ndarray, c: np.ndarray) -> float:
-    """Return the direction (degrees in [0, 360)) of the summed finite unit vectors, or NaN."""
-    ok = np.isfinite(s) & np.isfinite(c)
-    if not ok.any():
-        return float("nan")
-    # ψ̄ = atan2(Σ sin ψ, Σ cos ψ)
-    return float(np.mod(np.degrees(np.arctan2(s[ok].sum(), c[ok].sum())), 360.0))
-
-
 # Columns of the per-sample channel matrix resampled onto the grid.
-_A, _RS, _RC, _R, _MS, _MC = range(6)
-_N_CHANNELS = 6
+_A, _RS, _RC, _R, _MS, _MC = kernel.A, kernel.RS, kernel.RC, kernel.R, kernel.MS, kernel.MC
+_N_CHANNELS = kernel.N_CHANNELS
 
 
 def imu_channels(imu: ImuSamples, compass: bool = True) -> np.ndarray:
-    """Return the per-sample channels the detector resamples, shape (n, 6).
+    """Return the per-sample channels the detector resamples, shape (n, 6) (``kernel.channels``)."""
+    n = len(imu.t)
 
-    Columns: |a| (m/s²), sin and cos of the rotation-vector heading, yaw rate
-    (rad/s, clockwise), sin and cos of the magnetic heading; NaN where the
-    source field is absent. Without ``compass`` the last three (what the
-    gyro + magnetometer heading needs) are left NaN.
-    """
-    acc = np.asarray(imu.acc, dtype=float)
-    n = acc.shape[0]
-    out = np.full((n, _N_CHANNELS), np.nan)
-    # |a| = sqrt(ax² + ay² + az²)
-    out[:, _A] = _norm(acc)
-    rot = np.asarray(imu.rot, dtype=float).reshape(n, -1)
-    if rot.shape[1] >= 3:
-        psi = np.radians(rotation_vector_heading(rot))
-        out[:, _RS], out[:, _RC] = np.sin(psi), np.cos(psi)
-    if not compass:
-        return out
-    gyro = np.asarray(imu.gyro, dtype=float).reshape(n, -1)
-    if gyro.shape[1] == 3:
-        out[:, _R] = yaw_rate(acc, gyro)
-    mag = np.asarray(imu.mag, dtype=float).reshape(n, -1)
-    if mag.shape[1] == 3:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            psi = np.radians(magnetic_heading(acc, mag))
-        out[:, _MS], out[:, _MC] = np.sin(psi), np.cos(psi)
-    return out
+    def columns(values: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(np.asarray(values, dtype=float).reshape(n, -1))
+
+    return kernel.channels(
+        columns(imu.acc), columns(imu.rot), columns(imu.gyro), columns(imu.mag), compass
+    )
 
 
 class Pdr:
@@ -380,98 +284,52 @@ class Pdr:
         self._fill[[_R, _MS, _MC]] = np.nan
 
     def _segment(self, t: np.ndarray, x: np.ndarray) -> Steps:
-        """Process samples with no long pause: resample, filter, look for peaks."""
-        dt = self.params.grid_ms
-        if self._t_raw is None:
-            first = -(-int(t[0]) // dt) * dt
-            src_t, src_x = t, x
-        else:
-            first = (self._t_raw // dt + 1) * dt
-            src_t, src_x = np.concatenate([[self._t_raw], t]), np.vstack([self._raw, x])
+        """Process samples with no long pause: resample, filter, look for peaks (compiled)."""
+        p = self.params
+        alpha = 1.0 - np.exp(-p.grid_ms / (1000.0 * p.mag_time_constant_s))
+        started = np.array([self._zi_acc is not None, self._zi_head is not None], dtype=float)
+        # each filter's state, or its unit steady state until it starts
+        zi_acc = self._zi_acc if self._zi_acc is not None else _lowpass_zi(self._b, self._a)
+        zi_head = (
+            self._zi_head
+            if self._zi_head is not None
+            else _lowpass_zi(np.ones(1), np.array([1.0, alpha - 1.0]))
+        )
+        step_t, swing, heading, last, checked, self._buf_t, self._buf, self._u_last = (
+            kernel.segment(
+                t,
+                x,
+                NO_TIME if self._t_raw is None else self._t_raw,
+                self._raw,
+                p.grid_ms,
+                self._b,
+                self._a,
+                zi_acc,
+                zi_head,
+                started,
+                self._u_last,
+                alpha,
+                np.radians(p.heading_offset_deg),
+                self._buf_t,
+                self._buf,
+                NO_TIME if self._t_checked is None else self._t_checked,
+                NO_TIME if self._t_last_step is None else self._t_last_step,
+                p.gravity,
+                p.peak_min,
+                p.min_swing,
+                p.min_step_interval_ms,
+                p.max_step_ms,
+            )
+        )
         self._t_raw, self._raw = int(t[-1]), x[-1].copy()
-        grid = np.arange(first, int(t[-1]) + 1, dt, dtype=np.int64)
-        if grid.size == 0:
-            return Steps()
-        # Linear interpolation of every channel onto the grid (a channel never sent stays NaN)
-        g = np.full((grid.size, _N_CHANNELS), np.nan)
-        for j in np.flatnonzero(~np.isnan(src_x).all(axis=0)):
-            g[:, j] = np.interp(grid, src_t, src_x[:, j])
-        f = self._lowpass(g[:, _A])
-        heading = self._heading(g)
-        return self._peaks(grid, np.column_stack([f, np.sin(heading), np.cos(heading)]))
-
-    def _lowpass(self, a: np.ndarray) -> np.ndarray:
-        """Low-pass |a| with carried filter state, starting in steady state at the first value."""
-        if self._zi_acc is None:
-            self._zi_acc = signal.lfilter_zi(self._b, self._a) * a[0]
-        f, self._zi_acc = signal.lfilter(self._b, self._a, a, zi=self._zi_acc)
-        return f
-
-    def _heading(self, g: np.ndarray) -> np.ndarray:
-        """Return grid headings (rad, site frame): rotation vector, else gyro + magnetometer."""
-        p = self.params
-        psi = np.arctan2(g[:, _RS], g[:, _RC])
-        comp = np.full(g.shape[0], np.nan)
-        mag = np.arctan2(g[:, _MS], g[:, _MC])
-        ok = np.flatnonzero(np.isfinite(mag))
-        if ok.size:
-            i0 = ok[0]
-            # u: magnetic heading unwrapped continuously from the previous batch
-            seed = self._u_last if np.isfinite(self._u_last) else mag[i0]
-            u = np.unwrap(np.concatenate([[seed], mag[i0:]]))[1:]
-            self._u_last = float(u[-1])
-            alpha = 1.0 - np.exp(-p.grid_ms / (1000.0 * p.mag_time_constant_s))
-            r = np.nan_to_num(g[i0:, _R])
-            # ψ_k = (1 - α)(ψ_{k-1} + r_k Δt) + α u_k
-            drive = (1.0 - alpha) * r * (p.grid_ms / 1000.0) + alpha * u
-            den = np.array([1.0, -(1.0 - alpha)])
-            if self._zi_head is None:
-                self._zi_head = signal.lfilter_zi([1.0], den) * alpha * u[0]
-            comp[i0:], self._zi_head = signal.lfilter([1.0], den, drive, zi=self._zi_head)
-        psi = np.where(np.isfinite(psi), psi, comp)
-        # ψ_site = ψ + offset
-        return psi + np.radians(p.heading_offset_deg)
-
-    def _peaks(self, grid: np.ndarray, cols: np.ndarray) -> Steps:
-        """Find steps among the new grid samples; ``cols`` is (m, 3): f, sin ψ, cos ψ."""
-        p = self.params
-        t = np.concatenate([self._buf_t, grid])
-        v = np.vstack([self._buf, cols])
-        f = v[:, 0]
-        cand = local_maxima(f)
-        if self._t_checked is not None:
-            cand = cand[t[cand] > self._t_checked]
-        if t.size >= 2:
-            self._t_checked = int(t[-2])
-        out_t: list[int] = []
-        out_swing: list[float] = []
-        out_heading: list[float] = []
-        for j in cand:
-            tj = int(t[j])
-            if f[j] - p.gravity < p.peak_min:
-                continue
-            if self._t_last_step is not None and tj - self._t_last_step < p.min_step_interval_ms:
-                continue
-            lo = tj - p.max_step_ms
-            if self._t_last_step is not None:
-                lo = max(lo, self._t_last_step)
-            window = (t > lo) & (t <= tj)
-            # swing = a_max - a_min over the step
-            swing = f[j] - f[window].min()
-            if swing < p.min_swing:
-                continue
-            out_t.append(tj)
-            out_swing.append(float(swing))
-            out_heading.append(circular_mean_deg(v[window, 1], v[window, 2]))
-            self._t_last_step = tj
-        keep = p.max_step_ms // p.grid_ms + 2
-        self._buf_t, self._buf = t[-keep:], v[-keep:]
-        swing_arr = np.array(out_swing)
+        if started[0]:
+            self._zi_acc = zi_acc
+        if started[1]:
+            self._zi_head = zi_head
+        self._t_last_step = None if last == NO_TIME else int(last)
+        self._t_checked = None if checked == NO_TIME else int(checked)
         return Steps(
-            t=np.array(out_t, dtype=np.int64),
-            length=weinberg_length(swing_arr, p.weinberg_k),
-            heading=np.array(out_heading),
-            swing=swing_arr,
+            t=step_t, length=weinberg_length(swing, p.weinberg_k), heading=heading, swing=swing
         )
 
     # -- snapshots -----------------------------------------------------------
@@ -498,7 +356,8 @@ class Pdr:
 
         def arr(key: str, dtype: type = float) -> np.ndarray | None:
             value = state[key]
-            return None if value is None else np.asarray(value, dtype=dtype)
+            # a copy: the compiled filters update their state in place
+            return None if value is None else np.array(value, dtype=dtype)
 
         def opt_int(key: str) -> int | None:
             value = state[key]

@@ -24,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, types
+from numba.typed import Dict
 
 
 @dataclass(frozen=True)
@@ -60,25 +62,46 @@ def scan_ids(t: np.ndarray, tx: np.ndarray, params: ScanParams) -> np.ndarray:
         Gap and span limits.
     """
     t = np.asarray(t, dtype=np.int64)
-    n = t.size
-    out = np.zeros(n, dtype=np.int64)
-    if n == 0:
+    out = np.zeros(t.size, dtype=np.int64)
+    if t.size == 0:
         return out
     order = np.argsort(t, kind="stable")
-    ts = t[order]
-    txs = np.asarray(tx, dtype=np.int64)[order]
-    starts = np.flatnonzero(np.diff(ts) > params.gap_ms) + 1
-    new = np.zeros(n, dtype=bool)
-    new[0] = True
-    new[starts] = True
-    bounds = np.concatenate([[0], starts, [n]])
-    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-        if ts[hi - 1] != ts[lo]:
-            _cut_run(ts, txs, lo, hi, new, params.max_span_ms, params.repeat_ms)
+    new = _scan_starts(
+        t[order],
+        np.asarray(tx, dtype=np.int64)[order],
+        params.gap_ms,
+        params.max_span_ms,
+        params.repeat_ms,
+    )
     out[order] = np.cumsum(new) - 1
     return out
 
 
+@njit(cache=True)
+def _scan_starts(
+    ts: np.ndarray, txs: np.ndarray, gap_ms: int, max_span_ms: int, repeat_ms: int
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Return whether each reading (sorted by time) starts a scan.
+
+    A silence longer than ``gap_ms`` starts one; inside a run without one,
+    readings sharing a time are one scan, and ``_cut_run`` cuts the rest.
+    """
+    n = ts.size
+    new = np.zeros(n, dtype=np.bool_)
+    new[0] = True
+    lo = 0
+    for hi in range(1, n + 1):
+        if hi < n and ts[hi] - ts[hi - 1] <= gap_ms:
+            continue
+        if hi < n:
+            new[hi] = True
+        if ts[hi - 1] != ts[lo]:
+            _cut_run(ts, txs, lo, hi, new, max_span_ms, repeat_ms)
+        lo = hi
+    return new
+
+
+@njit(cache=True)
 def _cut_run(
     ts: np.ndarray,
     txs: np.ndarray,
@@ -87,25 +110,29 @@ def _cut_run(
     new: np.ndarray,
     max_span_ms: int,
     repeat_ms: int,
-) -> None:
+) -> None:  # pragma: no cover - compiled
     """Mark scan starts inside one run of readings without a long silence (sorted by time).
 
     When reading ``i`` cannot join the open scan (its transmitter was heard
     in it more than ``repeat_ms`` before, or the scan would span too long), the open scan
-    and ``i`` are cut at their largest gap; what follows the cut opens the
-    next scan, read again from its first reading, so grouping what remains
-    after any scan gives the same scans as grouping the whole.
+    and ``i`` are cut at their largest gap (the first of equals); what follows
+    the cut opens the next scan, read again from its first reading, so
+    grouping what remains after any scan gives the same scans as grouping the whole.
     """
     start = lo
-    heard: dict[int, int] = {}
+    heard = Dict.empty(key_type=types.int64, value_type=types.int64)
     i = lo
     while i < hi:
-        ti, tx = int(ts[i]), int(txs[i])
-        if ti - int(ts[start]) > max_span_ms or ti - heard.get(tx, ti) > repeat_ms:
-            start += 1 + int(np.argmax(np.diff(ts[start : i + 1])))
+        ti, tx = ts[i], txs[i]
+        if ti - ts[start] > max_span_ms or ti - heard.get(tx, ti) > repeat_ms:
+            widest, at = -1, start
+            for k in range(start, i):
+                if ts[k + 1] - ts[k] > widest:
+                    widest, at = ts[k + 1] - ts[k], k
+            start = at + 1
             new[start] = True
             # the next scan is read again from its first reading, as if the stream began there
-            heard = {}
+            heard = Dict.empty(key_type=types.int64, value_type=types.int64)
             i = start
             continue
         heard[tx] = ti
@@ -113,10 +140,49 @@ def _cut_run(
 
 
 def group_scans(t: np.ndarray, tx: np.ndarray, params: ScanParams) -> list[np.ndarray]:
-    """Return the reading indices of each scan, scans in time order."""
-    ids = scan_ids(t, tx, params)
-    if ids.size == 0:
+    """Return the reading indices of each scan (ascending), scans in time order."""
+    t = np.asarray(t, dtype=np.int64)
+    if t.size == 0:
         return []
-    order = np.argsort(ids, kind="stable")
-    cuts = np.flatnonzero(np.diff(ids[order])) + 1
-    return np.split(order, cuts)
+    index, bounds = _groups(
+        t, np.asarray(tx, dtype=np.int64), params.gap_ms, params.max_span_ms, params.repeat_ms
+    )
+    return [index[lo:hi] for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)]
+
+
+@njit(cache=True)
+def _groups(
+    t: np.ndarray, tx: np.ndarray, gap_ms: int, max_span_ms: int, repeat_ms: int
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Return the reading indices grouped by scan (ascending within each) and the bounds.
+
+    Scan k is ``index[bounds[k]:bounds[k + 1]]``. One compiled pass, where
+    numpy took ten calls on every tracker update.
+    """
+    order = np.argsort(t, kind="mergesort")
+    new = _scan_starts(t[order], tx[order], gap_ms, max_span_ms, repeat_ms)
+    scan = np.empty(t.size, dtype=np.int64)
+    k = -1
+    for i in range(t.size):
+        if new[i]:
+            k += 1
+        scan[order[i]] = k
+    bounds = np.zeros(k + 2, dtype=np.int64)
+    for i in range(t.size):
+        bounds[scan[i] + 1] += 1
+    for j in range(k + 1):
+        bounds[j + 1] += bounds[j]
+    index = np.empty(t.size, dtype=np.int64)
+    filled = bounds[:-1].copy()
+    for i in range(t.size):
+        index[filled[scan[i]]] = i
+        filled[scan[i]] += 1
+    return index, bounds
+
+
+def load_grouping() -> None:
+    """Group two readings, so the compiled loops are ready before a device needs them.
+
+    The first call in a process compiles them, or reads them from numba's disk cache.
+    """
+    group_scans(np.array([0, 1], dtype=np.int64), np.array([0, 0], dtype=np.int64), ScanParams())

@@ -25,8 +25,10 @@ from app.engine.hmm.tracker import HmmTracker
 from app.engine.locator_tracker import LocatorTracker, LocatorTrackerParams
 from app.engine.particle.floor_model import build_floor_models
 from app.engine.pdr import PdrParams
+from app.engine.pdr_kernel import load_kernel as load_pdr_kernel
 from app.engine.positioning import PositioningEngine, PositioningParams, floor_evidence
 from app.engine.samples import Batch, Estimate, RssiReadings
+from app.engine.scans import load_grouping
 from app.engine.smoothing import FixedLagSmoother, SmootherParams, load_solver
 from app.engine.tracker import Tracker
 from app.engine.uwb_tracker import UwbTracker, UwbTrackerParams
@@ -80,6 +82,9 @@ class SiteEngines:
         A worker warms a site when it loads or changes, so the first device
         there does not wait for its rasters.
         """
+        # every phone engine detects steps and groups WiFi scans
+        load_pdr_kernel()
+        load_grouping()
         kind = radio_kind(self.site)
         if kind == PF:
             _warm_particle_filter(self.pf, self.site)

@@ -15,11 +15,9 @@ from app.engine.pdr import (
     PdrParams,
     Steps,
     detect_steps,
-    magnetic_heading,
-    rotation_vector_heading,
     weinberg_length,
-    yaw_rate,
 )
+from app.engine.pdr_kernel import magnetic_heading, rotation_heading, yaw_rate
 from app.engine.samples import ImuSamples
 
 G = 9.80665
@@ -130,9 +128,8 @@ def test_step_length_is_weinberg_of_the_filtered_swing() -> None:
 def test_rotation_vector_heading_of_a_flat_phone(theta_deg: float, heading: float) -> None:
     # q = (0, 0, sin θ/2, cos θ/2): the phone turned by θ counter-clockwise about up.
     half = np.radians(theta_deg) / 2
-    q4 = np.array([[0.0, 0.0, np.sin(half), np.cos(half)]])
-    got4 = rotation_vector_heading(q4)[0]
-    got3 = rotation_vector_heading(q4[:, :3])[0]
+    got4 = rotation_heading(0.0, 0.0, np.sin(half), np.cos(half))
+    got3 = rotation_heading(0.0, 0.0, np.sin(half), np.nan)
     for got in (got4, got3):
         assert min(abs(got - heading), 360 - abs(got - heading)) < 1e-9
 
@@ -140,31 +137,27 @@ def test_rotation_vector_heading_of_a_flat_phone(theta_deg: float, heading: floa
 def test_rotation_vector_heading_ignores_pitch() -> None:
     # q = q_z(θ) ⊗ q_x(φ): pitched up 30° about the device x axis, then turned by θ = 40°.
     tz, px = np.radians(40.0) / 2, np.radians(30.0) / 2
-    q = np.array(
-        [
-            [
-                np.cos(tz) * np.sin(px),
-                np.sin(tz) * np.sin(px),
-                np.sin(tz) * np.cos(px),
-                np.cos(tz) * np.cos(px),
-            ]
-        ]
+    got = rotation_heading(
+        np.cos(tz) * np.sin(px),
+        np.sin(tz) * np.sin(px),
+        np.sin(tz) * np.cos(px),
+        np.cos(tz) * np.cos(px),
     )
-    np.testing.assert_allclose(rotation_vector_heading(q), [320.0], atol=1e-9)
+    assert got == pytest.approx(320.0, abs=1e-9)
 
 
 @pytest.mark.parametrize("heading", [0.0, 45.0, 135.0, 270.0])
 def test_magnetic_heading_of_a_flat_phone(heading: float) -> None:
     theta = -np.radians(heading)
-    mag = (_rz(theta).T @ np.array([0.0, 20.0, -40.0]))[None, :]
-    got = magnetic_heading(np.array([[0.0, 0.0, G]]), mag)[0]
+    mag = _rz(theta).T @ np.array([0.0, 20.0, -40.0])
+    got = magnetic_heading(0.0, 0.0, G, *mag)
     assert min(abs(got - heading), 360 - abs(got - heading)) < 1e-9
 
 
 def test_yaw_rate_is_clockwise_about_up() -> None:
-    acc = np.array([[0.0, 0.0, G], [0.0, 0.0, -G]])
-    gyro = np.array([[0.1, 0.2, 0.5], [0.0, 0.0, 0.5]])
-    np.testing.assert_allclose(yaw_rate(acc, gyro), [-0.5, 0.5])
+    # the phone face up, then face down, turning counter-clockwise about its own z
+    assert yaw_rate(0.0, 0.0, G, 0.1, 0.2, 0.5) == pytest.approx(-0.5)
+    assert yaw_rate(0.0, 0.0, -G, 0.0, 0.0, 0.5) == pytest.approx(0.5)
 
 
 def test_steps_carry_the_rotation_vector_heading_plus_the_offset() -> None:

@@ -1,7 +1,7 @@
 """The HMM's per-scan loops, compiled.
 
-The pooled emission with its floor marginals, the transition over occupied
-cells, and the k-NN fix's mixture density. Each replaces a chain of numpy
+The pooled emission with its floor marginals, the transition's Gaussian and
+its spread over occupied cells, and the k-NN fix's mixture density. Each replaces a chain of numpy
 calls on arrays of a few thousand points, where the calls' own overhead and
 the temporaries cost more than the arithmetic. Compiled once per process
 (numba's disk cache); ``load_kernels`` does it before a device needs them.
@@ -135,6 +135,41 @@ def propagate(
 
 
 @njit(cache=True)
+def gaussian_kernel(
+    dx: float, dy: float, cxx: float, cxy: float, cyy: float, cell: float, n_sigmas: float
+) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """Return a displacement's Gaussian on the grid, normalised, and its half-width (cells).
+
+    ``kernel[h + r, h + c]`` is the probability of moving ``c`` columns (x) and
+    ``r`` rows (y); the mean is (dx, dy) m and the covariance [[cxx, cxy],
+    [cxy, cyy]] m². It reaches ``n_sigmas`` standard deviations of the widest
+    axis past the mean. The 2 × 2 eigenvalue and inverse are closed forms.
+    """
+    # λ_max = (a + c) / 2 + sqrt(((a - c) / 2)² + b²)
+    half = 0.5 * (cxx - cyy)
+    widest = 0.5 * (cxx + cyy) + math.sqrt(half * half + cxy * cxy)
+    reach = math.hypot(dx, dy) + n_sigmas * math.sqrt(widest)
+    h = int(math.ceil(reach / cell))
+    det = cxx * cyy - cxy * cxy
+    ixx, ixy, iyy = cyy / det, -cxy / det, cxx / det
+    size = 2 * h + 1
+    kernel = np.empty((size, size))
+    total = 0.0
+    for r in range(size):
+        oy = (r - h) * cell - dy
+        for c in range(size):
+            ox = (c - h) * cell - dx
+            # K ∝ exp(-½ (o - D)ᵀ Σ⁻¹ (o - D))
+            value = math.exp(-0.5 * (ixx * ox * ox + 2.0 * ixy * ox * oy + iyy * oy * oy))
+            kernel[r, c] = value
+            total += value
+    for r in range(size):
+        for c in range(size):
+            kernel[r, c] /= total
+    return kernel, h
+
+
+@njit(cache=True)
 def mixture_log_density(
     xy: np.ndarray, centres: np.ndarray, weight: np.ndarray, sigma: float, floor_nats: float
 ) -> np.ndarray:  # pragma: no cover - compiled
@@ -176,4 +211,5 @@ def load_kernels() -> None:
     )  # fmt: skip
     cells = np.zeros((1, 2), dtype=np.int32)
     propagate(np.ones(1), cells, np.zeros((1, 1), dtype=np.int32), np.ones((1, 1)), 0)
+    gaussian_kernel(0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 3.0)
     mixture_log_density(np.zeros((1, 2)), np.zeros((1, 2)), np.ones(1), 1.0, 30.0)

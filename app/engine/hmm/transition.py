@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from app.engine.hmm.kernels import gaussian_kernel
+
 
 def step_displacement(
     length: float, heading_deg: float, length_std: float, heading_std_deg: float
@@ -61,13 +63,6 @@ def transition_kernel(
     n_sigmas : float
         Truncation radius in standard deviations of the widest axis.
     """
-    reach = float(np.hypot(*d) + n_sigmas * np.sqrt(np.linalg.eigvalsh(cov)[-1]))
-    h = int(np.ceil(reach / cell))
-    off = np.arange(-h, h + 1) * cell
-    dx = off[None, :] - d[0]
-    dy = off[:, None] - d[1]
-    inv = np.linalg.inv(cov)
-    # K ∝ exp(-½ (o - D)ᵀ Σ⁻¹ (o - D))
-    q = inv[0, 0] * dx * dx + 2.0 * inv[0, 1] * dx * dy + inv[1, 1] * dy * dy
-    kernel = np.exp(-0.5 * q)
-    return kernel / kernel.sum(), h
+    return gaussian_kernel(
+        float(d[0]), float(d[1]), cov[0, 0], cov[0, 1], cov[1, 1], cell, n_sigmas
+    )
