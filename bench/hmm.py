@@ -34,7 +34,9 @@ from app.engine.hmm.kernels import load_kernels  # noqa: E402
 from app.engine.hmm.params import HmmParams  # noqa: E402
 from app.engine.hmm.tracker import HmmTracker  # noqa: E402
 from app.engine.pdr import PdrParams  # noqa: E402
+from app.engine.pdr_kernel import load_kernel as load_pdr_kernel  # noqa: E402
 from app.engine.radiomap import RadioMapParams  # noqa: E402
+from app.engine.scans import load_grouping  # noqa: E402
 from app.engine.smoothing import (  # noqa: E402
     FixedLagSmoother,
     SmootherParams,
@@ -101,7 +103,10 @@ def main(argv: list[str] | None = None) -> None:
 
     emission_ms = per_call_ms(scans, emission)
     lag = SmootherParams()
+    # compiled once per process, as a worker warms a site
     load_kernels()
+    load_pdr_kernel()
+    load_grouping()
     load_solver()
     update_ms, smoother_ms = [], []
     for walk in batches:
