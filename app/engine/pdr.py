@@ -155,18 +155,6 @@ def _butter(order: int, cutoff_hz: float, fs: float) -> tuple[np.ndarray, np.nda
     return b, a
 
 
-def forward_fill(x: np.ndarray, last: np.ndarray) -> np.ndarray:
-    """Replace each NaN of ``x`` (n, d) by the latest finite value of its column.
-
-    ``last`` (d,) holds each column's value before the first row (NaN if none).
-    """
-    rows = np.arange(x.shape[0])[:, None]
-    # idx_ij = max{k ≤ i : x_kj finite}, -1 before the first
-    idx = np.maximum.accumulate(np.where(np.isfinite(x), rows, -1), axis=0)
-    filled = np.take_along_axis(x, np.maximum(idx, 0), axis=0)
-    return np.where(idx >= 0, filled, last[None, :])
-
-
 # Columns of the per-sample channel matrix resampled onto the grid.
 _A, _RS, _RC, _R, _MS, _MC = kernel.A, kernel.RS, kernel.RC, kernel.R, kernel.MS, kernel.MC
 _N_CHANNELS = kernel.N_CHANNELS
@@ -226,25 +214,11 @@ class Pdr:
         if not compass:
             self._forget_compass()
         x = imu_channels(imu, compass)
-        order = np.argsort(t, kind="stable")
-        t, x = t[order], x[order]
-        keep = np.isfinite(x[:, _A])
-        # Keep the first sample of a repeated timestamp.
-        keep[1:] &= t[1:] != t[:-1]
-        if self._t_raw is not None:
-            newer = t > self._t_raw
-            self.late += int(np.count_nonzero(keep & ~newer))
-            keep &= newer
-        t, x = t[keep], x[keep]
+        t_raw = NO_TIME if self._t_raw is None else self._t_raw
+        t, x, late = kernel.prepare(t, x, t_raw, self._fill)
+        self.late += late
         if t.size == 0:
             return Steps()
-        # a channel with gaps takes its last value; one never sent (nor before) stays NaN
-        missing = np.isnan(x[:, 1:])
-        gaps = np.flatnonzero(
-            missing.any(axis=0) & ~(missing.all(axis=0) & np.isnan(self._fill[1:]))
-        )
-        if gaps.size:
-            x[:, gaps + 1] = forward_fill(x[:, gaps + 1], self._fill[gaps + 1])
         self._fill = x[-1].copy()
         prev = np.concatenate([[self._t_raw if self._t_raw is not None else t[0]], t[:-1]])
         cuts = np.flatnonzero(t - prev > self.params.max_gap_ms)

@@ -103,6 +103,56 @@ def channels(
 
 
 @njit(cache=True)
+def prepare(
+    t: np.ndarray, x: np.ndarray, t_raw: int, fill: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int]:  # pragma: no cover
+    """Return a batch's usable samples in time order, heading channels filled, and the late.
+
+    Samples are sorted by time (stable); one without acceleration, one
+    repeating an earlier sample's time and one not newer than ``t_raw`` (the
+    last sample already used; ``NO_TIME``: none) are left out, the last
+    counted as late. A NaN in a heading channel takes that channel's last
+    value, ``fill`` before the first sample (NaN: none yet).
+    """
+    order = np.argsort(t, kind="mergesort")
+    n = t.size
+    keep = np.zeros(n, dtype=np.bool_)
+    late = 0
+    for i in range(n):
+        j = order[i]
+        ok = not math.isnan(x[j, A])
+        # the first sample of a repeated time
+        if i > 0 and t[j] == t[order[i - 1]]:
+            ok = False
+        if ok and t_raw != NO_TIME and t[j] <= t_raw:
+            late += 1
+            ok = False
+        keep[i] = ok
+    m = 0
+    for i in range(n):
+        if keep[i]:
+            m += 1
+    out_t = np.empty(m, dtype=np.int64)
+    out_x = np.empty((m, x.shape[1]))
+    carry = fill.copy()
+    k = 0
+    for i in range(n):
+        if not keep[i]:
+            continue
+        j = order[i]
+        out_t[k] = t[j]
+        out_x[k, A] = x[j, A]
+        for c in range(1, x.shape[1]):
+            if math.isnan(x[j, c]):
+                out_x[k, c] = carry[c]
+            else:
+                out_x[k, c] = x[j, c]
+                carry[c] = x[j, c]
+        k += 1
+    return out_t, out_x, late
+
+
+@njit(cache=True)
 def _interp(x: float, xp: np.ndarray, fp: np.ndarray, j: int) -> float:  # pragma: no cover
     """Return ``np.interp(x, xp, fp)`` given ``xp[j] <= x < xp[j + 1]`` (numpy's rules)."""
     if x == xp[j]:
@@ -396,6 +446,7 @@ def load_kernel() -> None:
     grid = np.zeros(2, dtype=np.int64)
     three = np.ones((2, 3))
     channels(three, np.ones((2, 4)), three, three, True)
+    prepare(np.array([1, 0], dtype=np.int64), three.repeat(2, axis=1), NO_TIME, np.ones(6))
     g = resample(np.array([0, 1], dtype=np.int64), np.zeros((2, N_CHANNELS)), grid)
     iir(np.ones(3), np.array([1.0, 0.0, 0.0]), g[:, A], np.zeros(2))
     heading(g, np.ones(1), np.zeros(1), np.nan, 0.5, 0.02, 0.0)
