@@ -104,6 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     emission_ms = per_call_ms(scans, emission)
     lag = SmootherParams()
     # compiled once per process, as a worker warms a site
+    refs.level_offset(*scans[0], np.zeros(1, dtype=np.int64))
     load_kernels()
     load_pdr_kernel()
     load_grouping()

@@ -227,13 +227,14 @@ class ReferenceScans:
         tx, level = self._query(tx, rssi)
         query = np.full(self.n_usable, np.nan)
         query[self.column[tx]] = level
-        scans = np.asarray(scans, dtype=np.int64)
-        first, count = self.scan_start[scans], self.scan_start[scans + 1] - self.scan_start[scans]
-        # every entry of the scans, scan after scan: first_j + 0 … count_j - 1
-        entries = np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())
-        diff = query[self.scan_col[entries]] - self.scan_level[entries]
-        diff = diff[np.isfinite(diff)]
-        return float(np.median(diff)) if diff.size else None
+        offset = _median_offset(
+            query,
+            self.scan_start,
+            self.scan_col,
+            self.scan_level,
+            np.asarray(scans, dtype=np.int64),
+        )
+        return None if np.isnan(offset) else offset
 
     def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
         """Return the position (m) of the ``k`` nearest scans of ``block`` (``neighbours``)."""
@@ -299,3 +300,30 @@ def _distances(
         shared = common_level[j] / max(total[j] + query_total, 1e-12)
         out[j] = mean_abs + penalty * (1.0 - shared) ** 2
     return out
+
+
+@njit(cache=True)
+def _median_offset(
+    query: np.ndarray,
+    scan_start: np.ndarray,
+    scan_col: np.ndarray,
+    scan_level: np.ndarray,
+    scans: np.ndarray,
+) -> float:  # pragma: no cover - compiled
+    """Return the median of ``query[col] - level`` over the entries of ``scans`` heard.
+
+    ``query`` is NaN at the columns the query did not hear; NaN when it heard
+    none of the scans' transmitters.
+    """
+    total = 0
+    for s in scans:
+        total += scan_start[s + 1] - scan_start[s]
+    diff = np.empty(total)
+    k = 0
+    for s in scans:
+        for e in range(scan_start[s], scan_start[s + 1]):
+            value = query[scan_col[e]] - scan_level[e]
+            if np.isfinite(value):
+                diff[k] = value
+                k += 1
+    return np.median(diff[:k]) if k else np.nan

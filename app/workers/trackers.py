@@ -144,7 +144,9 @@ def _warm_hmm(model: EmissionModel) -> None:
     positions, so the compiled loops are ready."""
     refs = model.references
     if refs is not None and refs.usable.any():
-        refs.distances(np.flatnonzero(refs.usable)[:1], np.array([-60.0]))
+        one = np.flatnonzero(refs.usable)[:1]
+        refs.distances(one, np.array([-60.0]))
+        refs.level_offset(one, np.array([-60.0]), np.zeros(1, dtype=np.int64))
     load_kernels()
     load_solver()
 

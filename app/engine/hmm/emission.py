@@ -113,6 +113,7 @@ class EmissionModel:
             self._prepare_references()
         self._cache: tuple[bytes, np.ndarray] | None = None
         self._evidence: tuple[bytes, list[np.ndarray], np.ndarray] | None = None
+        self._near: tuple[bytes, int, tuple[np.ndarray, np.ndarray] | None] | None = None
 
     def _prepare_references(self) -> None:
         """Gather the survey scans and each point's kernel over its floor's scans.
@@ -304,10 +305,19 @@ class EmissionModel:
 
         None without survey scans or when the scan shares nothing with the floor's.
         """
+        key = _scan_key(tx, rssi)
+        cached = self._near
+        if cached is not None and cached[0] == key and cached[1] == f:
+            return cached[2]
         d = self._floor_distances(f, tx, rssi)
-        if d is None or self.references is None:
-            return None
-        return self.references.neighbours(d, self.ref_blocks[f])
+        near = (
+            None
+            if d is None or self.references is None
+            else self.references.neighbours(d, self.ref_blocks[f])
+        )
+        # the tracker asks twice a scan (the fix's density, the radius): cached as ``_distances``
+        self._near = (key, f, near)
+        return near
 
     def fix_log_density(
         self, f: int, tx: np.ndarray, rssi: np.ndarray, points: np.ndarray | None = None
