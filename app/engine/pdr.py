@@ -155,8 +155,8 @@ def _butter(order: int, cutoff_hz: float, fs: float) -> tuple[np.ndarray, np.nda
     return b, a
 
 
-# Columns of the per-sample channel matrix resampled onto the grid.
-_A, _RS, _RC, _R, _MS, _MC = kernel.A, kernel.RS, kernel.RC, kernel.R, kernel.MS, kernel.MC
+# Columns of the per-sample channel matrix resampled onto the grid (``kernel.channels``).
+_RS, _R, _MS, _MC = kernel.RS, kernel.R, kernel.MS, kernel.MC
 _N_CHANNELS = kernel.N_CHANNELS
 
 

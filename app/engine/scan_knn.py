@@ -234,7 +234,7 @@ class ReferenceScans:
             self.scan_level,
             np.asarray(scans, dtype=np.int64),
         )
-        return None if np.isnan(offset) else offset
+        return None if np.isnan(offset) else float(offset)
 
     def weighted_mean(self, d: np.ndarray, block: slice, k: int | None = None) -> np.ndarray:
         """Return the position (m) of the ``k`` nearest scans of ``block`` (``neighbours``)."""

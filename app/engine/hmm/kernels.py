@@ -1,9 +1,9 @@
 """The HMM's per-scan loops, compiled.
 
 The pooled emission with its floor marginals, the transition's Gaussian and
-its spread over occupied cells, and the k-NN fix's mixture density. Each replaces a chain of numpy
-calls on arrays of a few thousand points, where the calls' own overhead and
-the temporaries cost more than the arithmetic. Compiled once per process
+its spread over occupied cells, and the k-NN fix's mixture density. Each
+replaces a chain of numpy calls on arrays of a few thousand points, where the
+calls' own overhead and the temporaries cost more than the arithmetic. Compiled once per process
 (numba's disk cache); ``load_kernels`` does it before a device needs them.
 """
 
