@@ -24,7 +24,7 @@ import numpy as np
 from scipy import signal
 
 from app.engine import pdr_kernel as kernel
-from app.engine.pdr_kernel import NO_TIME
+from app.engine.pdr_kernel import NO_TIME, StepRule
 from app.engine.samples import ImuSamples
 
 
@@ -183,6 +183,10 @@ class Pdr:
     def __init__(self, params: PdrParams | None = None) -> None:
         self.params = params or PdrParams()
         self._b, self._a = lowpass_coefficients(self.params)
+        p = self.params
+        self._rule = StepRule(
+            p.gravity, p.peak_min, p.min_swing, p.min_step_interval_ms, p.max_step_ms
+        )
         self.late = 0
         self._t_last_step: int | None = None
         # Forward-fill memory of the heading channels (never reset by gaps).
@@ -288,11 +292,7 @@ class Pdr:
                 self._buf,
                 NO_TIME if self._t_checked is None else self._t_checked,
                 NO_TIME if self._t_last_step is None else self._t_last_step,
-                p.gravity,
-                p.peak_min,
-                p.min_swing,
-                p.min_step_interval_ms,
-                p.max_step_ms,
+                self._rule,
             )
         )
         self._t_raw, self._raw = int(t[-1]), x[-1].copy()

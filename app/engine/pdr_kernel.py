@@ -12,6 +12,7 @@ second's fifty samples. Compiled once per process
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -23,6 +24,16 @@ NO_TIME = np.iinfo(np.int64).min
 # yaw rate, sin/cos of the magnetic heading.
 A, RS, RC, R, MS, MC = range(6)
 N_CHANNELS = 6
+
+
+class StepRule(NamedTuple):
+    """What makes a peak of the low-passed |a| a step (``PdrParams``' fields of the same names)."""
+
+    gravity: float
+    peak_min: float
+    min_swing: float
+    min_step_interval_ms: int
+    max_step_ms: int
 
 
 _DEG = 180.0 / math.pi
@@ -265,15 +276,15 @@ def heading(
     """
     m = g.shape[0]
     psi = np.empty(m)
+    magnetic = np.empty(m)
     i0 = -1
     for k in range(m):
         psi[k] = math.atan2(g[k, RS], g[k, RC])
-        if i0 < 0 and not math.isnan(math.atan2(g[k, MS], g[k, MC])):
+        magnetic[k] = math.atan2(g[k, MS], g[k, MC])
+        if i0 < 0 and not math.isnan(magnetic[k]):
             i0 = k
     if i0 >= 0:
-        mag = np.empty(m - i0)
-        for k in range(i0, m):
-            mag[k - i0] = math.atan2(g[k, MS], g[k, MC])
+        mag = magnetic[i0:]
         seed = u_last if not math.isnan(u_last) else mag[0]
         u = _unwrap_from(seed, mag)
         u_last = u[u.size - 1]
@@ -301,16 +312,12 @@ def peaks(
     v: np.ndarray,
     t_checked: int,
     t_last_step: int,
-    gravity: float,
-    peak_min: float,
-    min_swing: float,
-    min_interval_ms: int,
-    max_step_ms: int,
+    rule: StepRule,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover
     """Return the steps among grid samples ``t`` (n,), ``v`` (n, 3): f, sin ψ, cos ψ.
 
-    A step is a local maximum of f newer than ``t_checked``, ``peak_min``
-    above gravity, at least ``min_interval_ms`` after the last step and
+    A step (``rule``) is a local maximum of f newer than ``t_checked``, ``peak_min``
+    above gravity, at least ``min_step_interval_ms`` after the last step and
     ``min_swing`` above the lowest f since the later of that step and
     ``max_step_ms`` before it (``NO_TIME``: none). Returns the steps' times,
     swings (a_max - a_min), headings (degrees in [0, 360): the circular mean
@@ -327,11 +334,11 @@ def peaks(
         tj = t[j]
         if t_checked != NO_TIME and tj <= t_checked:
             continue
-        if v[j, 0] - gravity < peak_min:
+        if v[j, 0] - rule.gravity < rule.peak_min:
             continue
-        if t_last_step != NO_TIME and tj - t_last_step < min_interval_ms:
+        if t_last_step != NO_TIME and tj - t_last_step < rule.min_step_interval_ms:
             continue
-        lo = tj - max_step_ms
+        lo = tj - rule.max_step_ms
         if t_last_step != NO_TIME:
             lo = max(lo, t_last_step)
         low = np.inf
@@ -347,7 +354,7 @@ def peaks(
                 c += v[i, 2]
                 heard = True
         swing = v[j, 0] - low
-        if swing < min_swing:
+        if swing < rule.min_swing:
             continue
         out_t[found] = tj
         out_swing[found] = swing
@@ -376,11 +383,7 @@ def segment(
     buf: np.ndarray,
     t_checked: int,
     t_last_step: int,
-    gravity: float,
-    peak_min: float,
-    min_swing: float,
-    min_interval_ms: int,
-    max_step_ms: int,
+    rule: StepRule,
 ) -> tuple[
     np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray, np.ndarray, float
 ]:  # pragma: no cover
@@ -412,9 +415,9 @@ def segment(
         src_t[1:], src_x[1:] = t, x
     m = max((t[n - 1] - first) // grid_ms + 1, 0)
     grid = first + grid_ms * np.arange(m).astype(np.int64)
-    empty = np.zeros(0, dtype=np.int64)
     if m == 0:
-        return empty, np.zeros(0), np.zeros(0), t_last_step, t_checked, buf_t, buf, u_last
+        none = np.zeros(0)
+        return none.astype(np.int64), none, none, t_last_step, t_checked, buf_t, buf, u_last
     g = resample(src_t, src_x, grid)
     if started[0] == 0.0:
         # the low-pass starts in steady state at the first value
@@ -431,12 +434,10 @@ def segment(
     tt[k:] = grid
     for i in range(m):
         v[k + i, 0], v[k + i, 1], v[k + i, 2] = f[i], math.sin(psi[i]), math.cos(psi[i])
-    step_t, swing, step_heading, t_last_step = peaks(
-        tt, v, t_checked, t_last_step, gravity, peak_min, min_swing, min_interval_ms, max_step_ms
-    )
+    step_t, swing, step_heading, t_last_step = peaks(tt, v, t_checked, t_last_step, rule)
     if tt.size >= 2:
         t_checked = tt[tt.size - 2]
-    keep = max(tt.size - (max_step_ms // grid_ms + 2), 0)
+    keep = max(tt.size - (rule.max_step_ms // grid_ms + 2), 0)
     return step_t, swing, step_heading, t_last_step, t_checked, tt[keep:], v[keep:], u_last
 
 
@@ -445,15 +446,13 @@ def load_kernel() -> None:
 
     The first call in a process compiles it, or reads it from numba's disk cache.
     """
-    grid = np.zeros(2, dtype=np.int64)
     three = np.ones((2, 3))
     channels(three, np.ones((2, 4)), three, three, True)
-    prepare(np.array([1, 0], dtype=np.int64), three.repeat(2, axis=1), NO_TIME, np.ones(6))
-    g = resample(np.array([0, 1], dtype=np.int64), np.zeros((2, N_CHANNELS)), grid)
-    iir(np.ones(3), np.array([1.0, 0.0, 0.0]), g[:, A], np.zeros(2))
-    heading(g, np.ones(1), np.zeros(1), np.nan, 0.5, 0.02, 0.0)
+    times = np.array([1, 0], dtype=np.int64)
+    t, x, _ = prepare(times, three.repeat(2, axis=1), NO_TIME, np.ones(N_CHANNELS))
     one = np.ones(1)
+    # compiles the loops it calls too
     segment(
-        grid, g, NO_TIME, g[0], 20, one, np.array([1.0, 0.0]), np.zeros(1), one, np.zeros(2),
-        np.nan, 0.5, 0.0, grid, np.zeros((2, 3)), NO_TIME, NO_TIME, 9.8, 0.6, 2.0, 300, 1000,
+        t, x, NO_TIME, x[0], 20, one, np.array([1.0, 0.0]), np.zeros(1), one, np.zeros(2),
+        np.nan, 0.5, 0.0, t, three, NO_TIME, NO_TIME, StepRule(9.8, 0.6, 2.0, 300, 1000),
     )  # fmt: skip
