@@ -246,15 +246,25 @@ class ReferenceScans:
 
         Returns None when the scan shares no usable transmitter with the survey.
         """
-        d = self.distances(tx, rssi)
+        return self.fix(self.distances(tx, rssi), k)
+
+    def fix(
+        self, d: np.ndarray, k: int | None = None, weight_power: float | None = None
+    ) -> ScanFix | None:
+        """Return the fix of a scan from its distances ``d`` to every reference scan.
+
+        ``k`` and ``weight_power`` default to the constants'; None when no
+        distance is finite (the scan shared no usable transmitter).
+        """
         if not np.isfinite(d).any():
             return None
         k = min(k or self.params.k, d.size)
+        power = self.params.weight_power if weight_power is None else weight_power
         near = np.argpartition(d, k - 1)[:k]
         dn = d[near]
         best = max(float(dn.min()), 1e-3)
         # w_i = (d_i / d_min)^-p
-        weight = (np.maximum(dn, best) / best) ** -self.params.weight_power
+        weight = (np.maximum(dn, best) / best) ** -power
         floors = self.floor[near]
         floor = int(np.bincount(floors, weights=weight).argmax())
         on = floors == floor

@@ -24,6 +24,7 @@ from app.engine.crossval import CrossValidation
 from app.engine.hmm.params import HmmParams
 from app.engine.pdr import PdrParams
 from app.engine.pdr_fit import WalkPdr, fit_pdr_constants, wrap_deg
+from app.engine.scan_knn import ScanKnnParams
 from app.engine.smoothing import SmootherParams
 from app.engine.wifi_age import DEFAULT_MAX_AGE_MS
 from app.engine.wknn import WknnParams
@@ -92,6 +93,10 @@ class SiteTuning:
     wifi_max_age_ms : int
         Oldest a WiFi reading's last-seen time may be before its scan's
         time (ms) for the engines to use it (``app.engine.wifi_age``).
+    scan_knn_k : int
+        Survey scans the per-scan k-NN averages (``app.engine.scan_knn_cv``).
+    scan_knn_power : float
+        Exponent of its neighbour weights ``(d / d_min)^-p``.
     """
 
     weinberg_k: float
@@ -107,6 +112,8 @@ class SiteTuning:
     lag_fix_scale: float = SmootherParams().fix_scale
     pass_fix_scale: float = SmootherParams().fix_scale
     wifi_max_age_ms: int = DEFAULT_MAX_AGE_MS
+    scan_knn_k: int = ScanKnnParams().k
+    scan_knn_power: float = ScanKnnParams().weight_power
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -155,7 +162,12 @@ class SiteTuning:
             accuracy_floor_m=self.accuracy_floor_m,
             radius_scale=self.radius_scale,
             fix_nats=self.fix_nats,
+            references=self.scan_knn((base or HmmParams()).references),
         )
+
+    def scan_knn(self, base: ScanKnnParams | None = None) -> ScanKnnParams:
+        """Return per-scan k-NN constants with the site's neighbour count and weight power."""
+        return replace(base or ScanKnnParams(), k=self.scan_knn_k, weight_power=self.scan_knn_power)
 
     def fixed_lag(self, base: SmootherParams | None = None) -> SmootherParams:
         """Return the live fixed-lag smoother's constants with the site's fix scale."""

@@ -92,6 +92,10 @@ class SiteTuningRead(BaseModel):
     wifi_max_age_ms: int = DEFAULT_MAX_AGE_MS
     """Oldest a WiFi reading's last-seen time may be before its scan's time for the engines
     to use it (ms)."""
+    scan_knn_k: int = 10
+    """Survey scans the per-scan k-NN averages."""
+    scan_knn_power: float = 4.0
+    """Exponent of the per-scan k-NN's neighbour weights (d / d_min)^-p."""
 
 
 class TuningScores(BaseModel):
@@ -107,6 +111,8 @@ class TuningScores(BaseModel):
     floor_log_score_by_weight: dict[str, float | None]
     emission_scans: int
     knn_walk_error_m_by_wifi_max_age_ms: dict[str, float | None] = {}
+    knn_walk_error_m_by_weight_power: dict[str, float | None] = {}
+    knn_walk_error_m_by_k: dict[str, float | None] = {}
 
 
 class BuildSummary(BaseModel):

@@ -44,6 +44,8 @@ from app.engine.radiomap import (
     walkable_cells,
 )
 from app.engine.samples import ImuSamples, RssiReadings
+from app.engine.scan_knn import ScanKnnParams
+from app.engine.scan_knn_cv import choose_neighbours, paired_scores, walk_errors
 from app.engine.smoothing import SmootherParams
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
@@ -55,12 +57,7 @@ from app.engine.tuning import (
     one_standard_error_choice,
     tune_site,
 )
-from app.engine.wifi_age import (
-    AGE_CANDIDATES_MS,
-    DEFAULT_MAX_AGE_MS,
-    paired_scores,
-    walk_errors,
-)
+from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
 from app.engine.wknn import WknnParams
 from app.ingest.arrays import imu_arrays, reading_age, wifi_times
 from app.radiomaps.codec import encode_map
@@ -221,11 +218,11 @@ def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...
 def _wifi_age_scores(inputs: BuildInputs, folds: int) -> dict[float, list[float]]:
     """Return, per candidate oldest WiFi reading age (ms), each survey walk's held-out
     per-scan k-NN error, over the walks every candidate scored (``app.engine.wifi_age``)."""
-    by_age = {}
+    by_age: dict[float, dict[int, float]] = {}
     for age in AGE_CANDIDATES_MS:
         fresh = replace(inputs, surveys=tuple(s.heard_within(age) for s in inputs.surveys))
         survey, _, tx_ids, _ = _located_survey(fresh)
-        by_age[age] = walk_errors(survey, len(tx_ids), folds)
+        by_age[float(age)] = walk_errors(survey, len(tx_ids), folds)[0]
     return paired_scores(by_age) if all(by_age.values()) else {}
 
 
@@ -279,6 +276,9 @@ def compute_build(
         return BuildResult(
             maps={}, fits=beacon_fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
         )
+    knn, knn_scores = (
+        choose_neighbours(survey, len(tx_ids), folds) if tune else (ScanKnnParams(), {})
+    )
     report(0.1)
     plans = {i: f.plan for i, f in enumerate(site.model.floors)}
     maps: dict[str, RadioMap] = {}
@@ -309,7 +309,13 @@ def compute_build(
     fits = sorted(wifi_fits + beacon_fits, key=lambda f: f.tx)
     report(0.65)
     measured = _measured_walks(inputs)
-    replays = HmmReplays(inputs, tx_ids, tune_site(measured, None), hmm_walks if tune else 0, plans)
+    replays = HmmReplays(
+        inputs,
+        tx_ids,
+        replace(tune_site(measured, None), scan_knn_k=knn.k, scan_knn_power=knn.weight_power),
+        hmm_walks if tune else 0,
+        plans,
+    )
     validation = cross_validate(
         survey,
         plans,
@@ -317,7 +323,7 @@ def compute_build(
         WKNN,
         folds=folds,
         ks=WKNN_K_CANDIDATES,
-        emission=HmmParams(),
+        emission=HmmParams(references=knn),
         weights=EMISSION_WEIGHT_CANDIDATES,
         fold_hook=(lambda maps, test: replays.on_fold(maps, test, survey.scan_walk))
         if replays.walks
@@ -326,7 +332,10 @@ def compute_build(
     )
     chosen = replays.choose()
     tuning = replace(
-        tune_site(measured, validation, chosen[0] if chosen else None), wifi_max_age_ms=max_age
+        tune_site(measured, validation, chosen[0] if chosen else None),
+        wifi_max_age_ms=max_age,
+        scan_knn_k=knn.k,
+        scan_knn_power=knn.weight_power,
     )
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1])
@@ -380,7 +389,7 @@ def compute_build(
         tx_ids,
         accuracy,
         tuning,
-        _tuning_scores(validation, replays, smoothers, age_scores),
+        _tuning_scores(validation, replays, smoothers, age_scores, knn_scores),
     )
     report(1.0)
     return BuildResult(
@@ -571,6 +580,7 @@ def _tuning_scores(
     replays: HmmReplays,
     smoothers: dict[str, dict[float, list[float]]],
     age_scores: dict[float, list[float]],
+    knn_scores: dict[str, dict[float, list[float]]],
 ) -> dict[str, Any] | None:
     """Return the held-out figure of every candidate the tuning chose among."""
     if validation is None:
@@ -596,6 +606,12 @@ def _tuning_scores(
         "emission_scans": validation.emission_scans,
         "knn_walk_error_m_by_wifi_max_age_ms": {
             str(int(a)): _r(float(np.mean(v))) for a, v in age_scores.items() if v
+        },
+        "knn_walk_error_m_by_weight_power": {
+            str(p): _r(float(np.mean(v))) for p, v in knn_scores.get("weight_power", {}).items()
+        },
+        "knn_walk_error_m_by_k": {
+            str(int(k)): _r(float(np.mean(v))) for k, v in knn_scores.get("k", {}).items()
         },
     }
 

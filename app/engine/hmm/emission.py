@@ -123,7 +123,7 @@ class EmissionModel:
         kept by point and by scan.
         """
         p = self.params
-        self.references = ReferenceScans.from_maps(self.maps, self.n_tx)
+        self.references = ReferenceScans.from_maps(self.maps, self.n_tx, p.references)
         start = 0
         rows, cols, values = [], [], []
         point_start = np.cumsum([0] + [m.n_points for m in self.maps], dtype=np.int64)

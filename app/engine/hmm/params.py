@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from app.engine.scan_knn import ScanKnnParams
 from app.engine.scans import ScanParams
 
 
@@ -139,6 +140,9 @@ class HmmParams:
         with every scan) and is not used.
     scans : ScanParams
         How readings are grouped into scans.
+    references : ScanKnnParams
+        The per-scan k-NN over the survey scans behind the emission, the k-NN
+        fix and the radius (the site's build chooses its k and weight power).
     accuracy_floor_m : float
         Error (m) added in quadrature to the posterior's 68% radius: the
         posterior knows the maps' noise, not how far the fingerprints
@@ -211,3 +215,4 @@ class HmmParams:
     radius_scale: float = 1.0
     max_reading_age_ms: int = 3000
     scans: ScanParams = field(default_factory=ScanParams)
+    references: ScanKnnParams = field(default_factory=ScanKnnParams)
