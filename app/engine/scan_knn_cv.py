@@ -1,8 +1,9 @@
 """The per-scan k-NN cross-validated on a site's own surveys, whole walks held out in turn.
 
 A build scores its per-scan constants here: how old a WiFi reading may be
-(``app.engine.wifi_age``), and how many neighbours the k-NN averages and how
-steeply it weighs them (``choose_neighbours``). Walk ``w`` is in fold
+(``app.engine.wifi_age``), how many neighbours the k-NN averages and how
+steeply it weighs them (``choose_neighbours``), and how far its fixes fall
+from the walkers (``fix_spread``). Walk ``w`` is in fold
 ``w mod folds``; every ``every``-th scan of a held-out walk is located on the
 other folds' scans, and each walk's mean error is one sample, so candidates
 are compared walk by walk (``app.engine.tuning.one_standard_error_choice``).
@@ -10,7 +11,7 @@ are compared walk by walk (``app.engine.tuning.one_standard_error_choice``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -27,6 +28,32 @@ K_CANDIDATES = (5, 10, 15, 20)
 
 POWER_CANDIDATES = (2.0, 3.0, 4.0, 6.0, 8.0)
 """Exponents of the neighbour weights ``(d / d_min)^-p`` a build tries."""
+
+
+def _held_out(
+    survey: Survey, n_tx: int, folds: int, every: int
+) -> Iterator[tuple[ReferenceScans, int, np.ndarray]]:
+    """Yield (other folds' references, scan row, its distances to them) per held-out scan.
+
+    Every ``every``-th scan of each fold is held out in turn; scans sharing no
+    transmitter with the other folds are skipped.
+    """
+    k = min(folds, np.unique(survey.scan_walk).size)
+    if k < 2:
+        return
+    by_scan = np.argsort(survey.reading_scan, kind="stable")
+    starts = np.searchsorted(survey.reading_scan[by_scan], np.arange(survey.n_scans + 1))
+    fold_of_scan = survey.scan_walk % k
+    for fold in range(k):
+        held = fold_of_scan == fold
+        if held.all() or not held.any():
+            continue
+        refs = ReferenceScans(survey.select(~held), n_tx)
+        for j in np.flatnonzero(held)[::every]:
+            rows = by_scan[starts[j] : starts[j + 1]]
+            d = refs.distances(survey.reading_tx[rows], survey.reading_rssi[rows])
+            if np.isfinite(d).any():
+                yield refs, int(j), d
 
 
 def walk_errors(
@@ -46,32 +73,33 @@ def walk_errors(
     """
     base = ScanKnnParams()
     pairs = list(variants) or [(base.k, base.weight_power)]
-    walks = np.unique(survey.scan_walk)
-    k = min(folds, walks.size)
-    if k < 2:
-        return [{} for _ in pairs]
-    by_scan = np.argsort(survey.reading_scan, kind="stable")
-    starts = np.searchsorted(survey.reading_scan[by_scan], np.arange(survey.n_scans + 1))
     errors: list[dict[int, list[float]]] = [{} for _ in pairs]
-    fold_of_scan = survey.scan_walk % k
-    for fold in range(k):
-        held = fold_of_scan == fold
-        if held.all() or not held.any():
-            continue
-        refs = ReferenceScans(survey.select(~held), n_tx)
-        for j in np.flatnonzero(held)[::every]:
-            rows = by_scan[starts[j] : starts[j + 1]]
-            d = refs.distances(survey.reading_tx[rows], survey.reading_rssi[rows])
-            if not np.isfinite(d).any():
-                continue
-            walk = int(survey.scan_walk[j])
-            for v, (n, power) in enumerate(pairs):
-                fix = refs.fix(d, n, power)
-                assert fix is not None
-                right = fix.floor == survey.scan_floor[j]
-                error = float(np.hypot(*(fix.xy - survey.scan_xy[j]))) if right else WRONG_FLOOR_M
-                errors[v].setdefault(walk, []).append(error)
+    for refs, j, d in _held_out(survey, n_tx, folds, every):
+        walk = int(survey.scan_walk[j])
+        for v, (n, power) in enumerate(pairs):
+            fix = refs.fix(d, n, power)
+            assert fix is not None
+            right = fix.floor == survey.scan_floor[j]
+            error = float(np.hypot(*(fix.xy - survey.scan_xy[j]))) if right else WRONG_FLOOR_M
+            errors[v].setdefault(walk, []).append(error)
     return [{w: float(np.mean(e)) for w, e in by_walk.items()} for by_walk in errors]
+
+
+def fix_spread(
+    survey: Survey, n_tx: int, folds: int, params: ScanKnnParams, *, every: int = 2
+) -> float | None:
+    """Return the root mean square of the held-out per-scan k-NN errors (m) on the right floor.
+
+    How far a scan's k-NN fix lies from the walker on this site, tails
+    included: the HMM spreads each neighbour of its k-NN fix by this much
+    (``HmmParams.fix_sigma_m``). None when no scan was scored.
+    """
+    squares = []
+    for refs, j, d in _held_out(survey, n_tx, folds, every):
+        fix = refs.fix(d, params.k, params.weight_power)
+        if fix is not None and fix.floor == survey.scan_floor[j]:
+            squares.append(float(np.sum((fix.xy - survey.scan_xy[j]) ** 2)))
+    return float(np.sqrt(np.mean(squares))) if squares else None
 
 
 def paired_scores(by_candidate: Mapping[float, Mapping[int, float]]) -> dict[float, list[float]]:

@@ -98,6 +98,9 @@ class SiteTuning:
         Survey scans the per-scan k-NN averages (``app.engine.scan_knn_cv``).
     scan_knn_power : float
         Exponent of its neighbour weights ``(d / d_min)^-p``.
+    fix_sigma_m : float
+        Spread (m) of each neighbour of the HMM's k-NN fix: the root mean
+        square of the held-out k-NN errors (``app.engine.scan_knn_cv``).
     """
 
     weinberg_k: float
@@ -115,6 +118,7 @@ class SiteTuning:
     wifi_max_age_ms: int = DEFAULT_MAX_AGE_MS
     scan_knn_k: int = ScanKnnParams().k
     scan_knn_power: float = ScanKnnParams().weight_power
+    fix_sigma_m: float = HmmParams().fix_sigma_m
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -163,6 +167,7 @@ class SiteTuning:
             accuracy_floor_m=self.accuracy_floor_m,
             radius_scale=self.radius_scale,
             fix_nats=self.fix_nats,
+            fix_sigma_m=self.fix_sigma_m,
             references=self.scan_knn((base or HmmParams()).references),
         )
 

@@ -96,6 +96,8 @@ class SiteTuningRead(BaseModel):
     """Survey scans the per-scan k-NN averages."""
     scan_knn_power: float = 4.0
     """Exponent of the per-scan k-NN's neighbour weights (d / d_min)^-p."""
+    fix_sigma_m: float = 8.0
+    """Spread (m) of each neighbour of the HMM's k-NN fix: the held-out k-NN errors' RMS."""
 
 
 class TuningScores(BaseModel):

@@ -45,7 +45,7 @@ from app.engine.radiomap import (
 )
 from app.engine.samples import ImuSamples, RssiReadings
 from app.engine.scan_knn import ScanKnnParams
-from app.engine.scan_knn_cv import choose_neighbours, paired_scores, walk_errors
+from app.engine.scan_knn_cv import choose_neighbours, fix_spread, paired_scores, walk_errors
 from app.engine.smoothing import SmootherParams
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
@@ -226,6 +226,17 @@ def _wifi_age_scores(inputs: BuildInputs, folds: int) -> dict[float, list[float]
     return paired_scores(by_age) if all(by_age.values()) else {}
 
 
+def _with_knn(tuning: SiteTuning, knn: ScanKnnParams, spread: float | None) -> SiteTuning:
+    """Return ``tuning`` with the per-scan k-NN's constants and, where measured, the spread
+    of the HMM's k-NN fix."""
+    return replace(
+        tuning,
+        scan_knn_k=knn.k,
+        scan_knn_power=knn.weight_power,
+        fix_sigma_m=tuning.fix_sigma_m if spread is None else round(spread, 3),
+    )
+
+
 def _r(value: float, digits: int = 3) -> float | None:
     return None if not np.isfinite(value) else round(float(value), digits)
 
@@ -279,6 +290,7 @@ def compute_build(
     knn, knn_scores = (
         choose_neighbours(survey, len(tx_ids), folds) if tune else (ScanKnnParams(), {})
     )
+    spread = fix_spread(survey, len(tx_ids), folds, knn) if tune else None
     report(0.1)
     plans = {i: f.plan for i, f in enumerate(site.model.floors)}
     maps: dict[str, RadioMap] = {}
@@ -312,7 +324,7 @@ def compute_build(
     replays = HmmReplays(
         inputs,
         tx_ids,
-        replace(tune_site(measured, None), scan_knn_k=knn.k, scan_knn_power=knn.weight_power),
+        _with_knn(tune_site(measured, None), knn, spread),
         hmm_walks if tune else 0,
         plans,
     )
@@ -332,10 +344,8 @@ def compute_build(
     )
     chosen = replays.choose()
     tuning = replace(
-        tune_site(measured, validation, chosen[0] if chosen else None),
+        _with_knn(tune_site(measured, validation, chosen[0] if chosen else None), knn, spread),
         wifi_max_age_ms=max_age,
-        scan_knn_k=knn.k,
-        scan_knn_power=knn.weight_power,
     )
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1])

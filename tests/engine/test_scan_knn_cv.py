@@ -12,6 +12,7 @@ from app.engine.scan_knn_cv import (
     POWER_CANDIDATES,
     WRONG_FLOOR_M,
     choose_neighbours,
+    fix_spread,
     paired_scores,
     walk_errors,
 )
@@ -105,3 +106,27 @@ def test_the_neighbours_chosen_are_the_rule_s_choice_among_paired_walk_scores() 
     # a survey of one walk cannot be cross-validated: the defaults stay
     one = survey.select(survey.scan_walk == 0)
     assert choose_neighbours(one, n_tx=5, folds=2) == (ScanKnnParams(), {})
+
+
+def test_the_fix_spread_is_the_rms_of_the_held_out_errors_on_the_right_floor() -> None:
+    rng = np.random.default_rng(9)
+    xs = np.arange(0.0, 40.5, 1.0)
+    lower = Survey.concat([_walk(xs + 0.25 * w, rng, w) for w in range(4)])
+    # a fifth walk on another floor hearing the same transmitters: its scans land on floor 0
+    upper = _walk(xs, rng, 4)
+    upper = Survey(**(vars(upper) | {"scan_floor": np.ones(upper.n_scans, dtype=np.int32)}))
+    survey = Survey.concat([lower, upper])
+    params = ScanKnnParams(k=3)
+    spread = fix_spread(survey, 5, folds=5, params=params, every=1)
+    squares = []
+    for fold in range(5):
+        held = survey.scan_walk % 5 == fold
+        refs = ReferenceScans(survey.select(~held), 5, params)
+        for j in np.flatnonzero(held):
+            r = np.flatnonzero(survey.reading_scan == j)
+            fix = refs.locate(survey.reading_tx[r], survey.reading_rssi[r])
+            if fix is not None and fix.floor == survey.scan_floor[j]:
+                squares.append(float(np.sum((fix.xy - survey.scan_xy[j]) ** 2)))
+    assert spread == pytest.approx(np.sqrt(np.mean(squares)), rel=1e-12)
+    assert 0.0 < spread < 3.0
+    assert fix_spread(survey.select(survey.scan_walk == 0), 5, folds=5, params=params) is None
