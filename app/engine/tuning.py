@@ -5,12 +5,13 @@ floor plan is rotated against magnetic north (the PDR heading offset), how
 long its walkers' steps are (Weinberg's K), how far apart its fingerprints
 are in signal space (the number of WKNN neighbours, the per-scan k-NN's
 neighbours and their weights, the HMM's emission weight), how far the
-fingerprints themselves are from the truth (the accuracy floor) and how far
-the tracker's positions may be trusted against its steps (the smoothers' fix
-scales). A radio-map build chooses each from
-the site's survey walks (walk-level folds: no walk both trains and tests),
-stores them with the maps, and the site's engines read them from there; the
-defaults only seed the choice and stand in where a site has no surveys.
+fingerprints themselves are from the truth (the accuracy floor, the spread
+of the HMM's k-NN fix) and how far the tracker's positions may be trusted
+against its steps (the smoothers' fix scales). A radio-map build chooses
+each from the site's survey walks (walk-level folds: no walk both trains and
+tests), stores them with the maps, and the site's engines read them from
+there; the defaults only seed the choice and stand in where a site has no
+surveys.
 """
 
 from __future__ import annotations
