@@ -97,7 +97,8 @@ def fix_spread(
     squares = []
     for refs, j, d in _held_out(survey, n_tx, folds, every):
         fix = refs.fix(d, params.k, params.weight_power)
-        if fix is not None and fix.floor == survey.scan_floor[j]:
+        assert fix is not None
+        if fix.floor == survey.scan_floor[j]:
             squares.append(float(np.sum((fix.xy - survey.scan_xy[j]) ** 2)))
     return float(np.sqrt(np.mean(squares))) if squares else None
 
@@ -111,7 +112,7 @@ def paired_scores(by_candidate: Mapping[float, Mapping[int, float]]) -> dict[flo
 
 
 def choose_neighbours(
-    survey: Survey, n_tx: int, folds: int, base: ScanKnnParams | None = None
+    survey: Survey, n_tx: int, folds: int
 ) -> tuple[ScanKnnParams, dict[str, dict[float, list[float]]]]:
     """Return k-NN constants with the site's neighbour count and weight power, and the scores.
 
@@ -124,7 +125,7 @@ def choose_neighbours(
     5.931 m at k 5, 15 and 20, and took power 8 and k 10: a steeper power
     trusts the best match more where the survey is dense.
     """
-    base = base or ScanKnnParams()
+    base = ScanKnnParams()
     pairs = [(base.k, p) for p in POWER_CANDIDATES] + [
         (k, p) for k in K_CANDIDATES if k != base.k for p in POWER_CANDIDATES
     ]
