@@ -49,6 +49,12 @@ FIX_WEIGHT_CANDIDATES = (0.0, 10.0, 20.0)
 with: on a sparse survey the nearest survey scans can be far from the walker, and the fix
 then pulls the track the wrong way."""
 
+WALK_NOISE_CANDIDATES = (0.02, 0.05, 0.15, 0.5)
+"""Transition noise (m² per second, ``HmmParams.walk_noise_m2_per_s``) a build replays
+held-out walks with: how far the walker may stray from the steps between scans. Phones
+whose steps are poorly counted or oriented need more; on site1's validation walks 0.02 to
+0.5 spanned 0.53 m of mean error."""
+
 SMOOTHER_FIX_SCALE_CANDIDATES = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0)
 """Factors on the positions' σ a build scores the fixed-lag and full-pass smoothers with,
 on the replayed held-out walks: how much a filter's positions, each carrying the scans
@@ -102,6 +108,8 @@ class SiteTuning:
     fix_sigma_m : float
         Spread (m) of each neighbour of the HMM's k-NN fix: the root mean
         square of the held-out k-NN errors (``app.engine.scan_knn_cv``).
+    walk_noise_m2_per_s : float
+        The HMM's transition noise beyond the steps' own (m² per second).
     """
 
     weinberg_k: float
@@ -120,6 +128,7 @@ class SiteTuning:
     scan_knn_k: int = ScanKnnParams().k
     scan_knn_power: float = ScanKnnParams().weight_power
     fix_sigma_m: float = HmmParams().fix_sigma_m
+    walk_noise_m2_per_s: float = HmmParams().walk_noise_m2_per_s
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -155,7 +164,7 @@ class SiteTuning:
         )
 
     def hmm(self, base: HmmParams | None = None) -> HmmParams:
-        """Return HMM constants with the site's weights, heading noise and accuracy floor.
+        """Return HMM constants with the site's weights, noises and accuracy floor.
 
         The HMM's k-NN start keeps its own k: the WKNN's best k averages many
         neighbours on a sparse map, a poor place to restart a track.
@@ -169,6 +178,7 @@ class SiteTuning:
             radius_scale=self.radius_scale,
             fix_nats=self.fix_nats,
             fix_sigma_m=self.fix_sigma_m,
+            walk_noise_m2_per_s=self.walk_noise_m2_per_s,
             references=self.scan_knn((base or HmmParams()).references),
         )
 
@@ -226,6 +236,32 @@ def one_standard_error_choice(scores: Mapping[float, Sequence[float]], default: 
         return abs(float(np.log(c / default))) if c > 0 and default > 0 else float("inf")
 
     return min((c for c in values if as_good(c)), key=lambda c: (distance(c), c))
+
+
+def one_move_choice(
+    scores: Sequence[Mapping[float, Sequence[float]]], defaults: Sequence[float]
+) -> tuple[float, ...]:
+    """Return ``defaults`` with at most one constant moved, by per-walk scores.
+
+    ``scores[i]`` holds the walk scores of constant i's candidates, the
+    others at their defaults. Each constant's choice is the one-standard-error
+    rule's; where several would move, only the move with the lowest mean score
+    is taken, so the result is a candidate that was scored, never an untried
+    combination.
+    """
+    out = tuple(float(d) for d in defaults)
+    best: tuple[float, int, float] | None = None
+    for i, (by_value, default) in enumerate(zip(scores, defaults, strict=True)):
+        if not by_value:
+            continue
+        chosen = one_standard_error_choice(by_value, default)
+        mean = float(np.mean(by_value[chosen]))
+        if chosen != default and (best is None or mean < best[0]):
+            best = (mean, i, float(chosen))
+    if best is None:
+        return out
+    _, i, value = best
+    return out[:i] + (value,) + out[i + 1 :]
 
 
 def tune_site(

@@ -98,6 +98,8 @@ class SiteTuningRead(BaseModel):
     """Exponent of the per-scan k-NN's neighbour weights (d / d_min)^-p."""
     fix_sigma_m: float = 8.0
     """Spread (m) of each neighbour of the HMM's k-NN fix: the held-out k-NN errors' RMS."""
+    walk_noise_m2_per_s: float = 0.05
+    """The HMM's transition noise beyond the steps' own (m² per second)."""
 
 
 class TuningScores(BaseModel):
@@ -105,6 +107,7 @@ class TuningScores(BaseModel):
 
     hmm_walk_error_m_by_weight: dict[str, float | None] = {}
     hmm_walk_error_m_by_fix_weight: dict[str, float | None] = {}
+    hmm_walk_error_m_by_walk_noise: dict[str, float | None] = {}
     fixed_lag_walk_error_m_by_fix_scale: dict[str, float | None] = {}
     full_pass_walk_error_m_by_fix_scale: dict[str, float | None] = {}
     hmm_walks: int = 0

@@ -52,8 +52,10 @@ from app.engine.tuning import (
     FIX_WEIGHT_CANDIDATES,
     HMM_WEIGHT_CANDIDATES,
     SMOOTHER_FIX_SCALE_CANDIDATES,
+    WALK_NOISE_CANDIDATES,
     WKNN_K_CANDIDATES,
     SiteTuning,
+    one_move_choice,
     one_standard_error_choice,
     tune_site,
 )
@@ -348,12 +350,12 @@ def compute_build(
         wifi_max_age_ms=max_age,
     )
     if chosen is not None:
-        tuning = replace(tuning, fix_nats=chosen[1])
-    radius = replays.radius_calibration(tuning.emission_weight, tuning.fix_nats)
+        tuning = replace(tuning, fix_nats=chosen[1], walk_noise_m2_per_s=chosen[2])
+    radius = replays.radius_calibration(_replayed_key(tuning))
     smoothers: dict[str, dict[float, list[float]]] = {}
     if radius is not None:
         tuning = replace(tuning, radius_scale=radius[0], accuracy_floor_m=radius[1])
-        smoothers = replays.smoother_scores(tuning.emission_weight, tuning.fix_nats, radius)
+        smoothers = replays.smoother_scores(_replayed_key(tuning), radius)
         default = SmootherParams().fix_scale
         tuning = replace(
             tuning,
@@ -382,7 +384,7 @@ def compute_build(
             "p90_error_m": _r(float(np.percentile(held.error_m, 90))),
             "floor_error_rate": _r(float(1.0 - np.mean(held.floor_ok)), 4),
         }
-        replayed = replays.mean_error(tuning.emission_weight, tuning.fix_nats)
+        replayed = replays.mean_error(_replayed_key(tuning))
         if replayed is not None:
             # what the server's tracker measured on walks the maps were built without
             accuracy["tracker"] = {
@@ -448,6 +450,13 @@ def _summary(
     }
 
 
+HMM_REPLAYED = ("emission_weight", "fix_nats", "walk_noise_m2_per_s")
+"""The HMM constants a build chooses by replaying held-out walks, in ``HmmKey`` order."""
+
+HmmKey = tuple[float, float, float]
+"""One replayed candidate: its emission weight, k-NN fix weight and transition noise."""
+
+
 class HmmReplays:
     """Held-out survey walks replayed through the HMM on each fold's maps, per candidate.
 
@@ -456,11 +465,11 @@ class HmmReplays:
     heading noise ``base`` learned from the surveys and no accuracy floor, so
     the replays also calibrate the radius. The candidates step away from the
     defaults one constant at a time (a fold's maps are too large to keep for
-    a second round): every emission weight with the default k-NN fix weight,
-    and every fix weight with the default emission weight, all with the
-    default floor weight (the per-scan floor scores choose the site's). A fix
-    weight other than the default is chosen only where the emission weight
-    stays at its default, so the chosen pair was always replayed.
+    a second round): every emission weight, every k-NN fix weight and every
+    transition noise, each with the other two at their defaults, all with the
+    default floor weight (the per-scan floor scores choose the site's). Where
+    more than one constant would move, only the move whose replays erred
+    least is taken, so the chosen candidate was always replayed.
     """
 
     def __init__(
@@ -483,21 +492,33 @@ class HmmReplays:
         self.per_fold = per_fold
         self.pdr = base.pdr()
         default = HmmParams()
-        self.default = (default.emission_weight, default.fix_nats)
-        pairs = [(w, default.fix_nats) for w in HMM_WEIGHT_CANDIDATES]
-        pairs += [(default.emission_weight, f) for f in FIX_WEIGHT_CANDIDATES]
-        self.pairs = list(dict.fromkeys(pairs))
+        self.default: HmmKey = (
+            default.emission_weight,
+            default.fix_nats,
+            default.walk_noise_m2_per_s,
+        )
+        grids = (HMM_WEIGHT_CANDIDATES, FIX_WEIGHT_CANDIDATES, WALK_NOISE_CANDIDATES)
+        keys = [self._moved(axis, v) for axis, grid in enumerate(grids) for v in grid]
+        self.keys = list(dict.fromkeys(keys))
         self.candidates = [
             replace(
                 base.hmm(),
                 emission_weight=w,
                 fix_nats=f,
+                walk_noise_m2_per_s=q,
                 accuracy_floor_m=0.0,
                 radius_scale=1.0,
             )
-            for w, f in self.pairs
+            for w, f, q in self.keys
         ]
-        self.results: dict[tuple[float, float], list[WalkResult]] = {k: [] for k in self.pairs}
+        self.results: dict[HmmKey, list[WalkResult]] = {k: [] for k in self.keys}
+
+    def _moved(self, axis: int, value: float) -> HmmKey:
+        """Return the defaults with one constant (``axis`` of ``HMM_REPLAYED``) set to
+        ``value``."""
+        key = list(self.default)
+        key[axis] = float(value)
+        return (key[0], key[1], key[2])
 
     def on_fold(
         self, maps: tuple[RadioMap, ...], test: np.ndarray, walk_of_scan: np.ndarray
@@ -508,71 +529,74 @@ class HmmReplays:
             held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
         walks = [self.walks[w] for w in held]
         replayed = candidate_results(maps, walks, self.candidates, self.pdr, self.plans)
-        for key, new in zip(self.pairs, replayed, strict=True):
+        for key, new in zip(self.keys, replayed, strict=True):
             self.results[key] += new
 
     @property
     def scored(self) -> int:
         """Return the walks replayed (per candidate)."""
-        return len(self.results[self.pairs[0]]) if self.pairs else 0
+        return len(self.results[self.keys[0]]) if self.keys else 0
 
-    def _scores(
-        self, weight: float | None = None, fix: float | None = None
-    ) -> dict[float, list[float]]:
-        """Return each walk's score per candidate value of the constant left free."""
-        free = [(w, f) for w, f in self.pairs if (f == fix if weight is None else w == weight)]
+    def _scores(self, axis: int) -> dict[float, list[float]]:
+        """Return each walk's score per value of one constant, the others at their defaults."""
+        others = [i for i in range(len(HMM_REPLAYED)) if i != axis]
         return {
-            (w if weight is None else f): [r.score for r in self.results[(w, f)]] for w, f in free
+            key[axis]: [r.score for r in self.results[key]]
+            for key in self.keys
+            if all(key[i] == self.default[i] for i in others)
         }
 
     def mean_errors(self) -> dict[str, dict[float, float]]:
-        """Return the mean walk score (m) of each emission weight (default fix weight) and of
-        each fix weight (default emission weight); empty when none was replayed."""
+        """Return the mean walk score (m) of each value of each replayed constant, the others
+        at their defaults; empty when none was replayed."""
         if not self.scored:
             return {}
-        weight, fix = self.default
         return {
-            "weight": {w: float(np.mean(v)) for w, v in self._scores(fix=fix).items()},
-            "fix": {f: float(np.mean(v)) for f, v in self._scores(weight=weight).items()},
+            name: {v: float(np.mean(s)) for v, s in self._scores(axis).items()}
+            for axis, name in enumerate(HMM_REPLAYED)
         }
 
-    def choose(self) -> tuple[float, float] | None:
-        """Return the emission and fix weights chosen by the one-standard-error rule, the
-        fix weight only where the emission weight stays; None without replays."""
+    def choose(self) -> HmmKey | None:
+        """Return the candidate chosen one constant at a time (``one_move_choice``); None
+        without replays."""
         if not self.scored:
             return None
-        weight, fix = self.default
-        chosen = one_standard_error_choice(self._scores(fix=fix), weight)
-        if chosen != weight:
-            return chosen, fix
-        return weight, one_standard_error_choice(self._scores(weight=weight), fix)
+        w, f, q = one_move_choice(
+            [self._scores(axis) for axis in range(len(HMM_REPLAYED))], self.default
+        )
+        return w, f, q
 
-    def mean_error(self, weight: float, fix: float) -> float | None:
-        """Return the mean walk score (m) of one replayed candidate, None if not replayed."""
-        results = self.results.get((weight, fix))
+    def mean_error(self, key: HmmKey) -> float | None:
+        """Return the mean walk score (m) of one candidate, None if not replayed."""
+        results = self.results.get(key)
         return float(np.mean([r.score for r in results])) if results else None
 
     def smoother_scores(
-        self, weight: float, fix: float, calibration: tuple[float, float]
+        self, key: HmmKey, calibration: tuple[float, float]
     ) -> dict[str, dict[float, list[float]]]:
         """Return one candidate's walk scores under each smoother, per fix scale, its
         radius calibrated by ``calibration``."""
         return smoother_scores(
-            self.results.get((weight, fix), []),
+            self.results.get(key, []),
             calibration,
             HmmParams().min_accuracy_m,
             SMOOTHER_FIX_SCALE_CANDIDATES,
         )
 
-    def radius_calibration(self, weight: float, fix: float) -> tuple[float, float] | None:
-        """Return the radius scale and floor (m) under which the radius holds 68% of the
-        replays' errors; None without replays."""
-        results = self.results.get((weight, fix))
+    def radius_calibration(self, key: HmmKey) -> tuple[float, float] | None:
+        """Return the radius scale and floor (m) under which the radius holds 68% of one
+        candidate's replay errors; None if it was not replayed."""
+        results = self.results.get(key)
         if not results:
             return None
         error = np.concatenate([r.error for r in results])
         radius = np.concatenate([r.radius for r in results])
         return calibrate_radius(error, radius, HmmParams().min_accuracy_m)
+
+
+def _replayed_key(tuning: SiteTuning) -> HmmKey:
+    """Return the replay candidate a tuning's HMM constants are."""
+    return (tuning.emission_weight, tuning.fix_nats, tuning.walk_noise_m2_per_s)
 
 
 def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
@@ -597,12 +621,16 @@ def _tuning_scores(
         return None
     errors = replays.mean_errors()
 
+    def by_value(name: str) -> dict[str, float | None]:
+        return {str(v): _r(e) for v, e in errors.get(name, {}).items()}
+
     def by_scale(name: str) -> dict[str, float | None]:
         return {str(c): _r(float(np.mean(v))) for c, v in smoothers.get(name, {}).items() if v}
 
     return {
-        "hmm_walk_error_m_by_weight": {str(w): _r(e) for w, e in errors.get("weight", {}).items()},
-        "hmm_walk_error_m_by_fix_weight": {str(f): _r(e) for f, e in errors.get("fix", {}).items()},
+        "hmm_walk_error_m_by_weight": by_value("emission_weight"),
+        "hmm_walk_error_m_by_fix_weight": by_value("fix_nats"),
+        "hmm_walk_error_m_by_walk_noise": by_value("walk_noise_m2_per_s"),
         "fixed_lag_walk_error_m_by_fix_scale": by_scale("fixed_lag"),
         "full_pass_walk_error_m_by_fix_scale": by_scale("full_pass"),
         "hmm_walks": replays.scored,

@@ -21,7 +21,7 @@ from app.engine.hmm.params import HmmParams
 from app.engine.pdr import detect_steps
 from app.engine.samples import Estimate
 from app.engine.smoothing import SmootherParams
-from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES
+from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES, WALK_NOISE_CANDIDATES
 from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
 from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.score import estimates_from_positions
@@ -385,19 +385,29 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     # the floor weight is the one whose per-scan floor posteriors scored best
     by_floor = {float(w): v for w, v in scores["floor_log_score_by_weight"].items()}
     assert by_floor[tuning["floor_weight"]] == max(by_floor.values())
-    # so does the k-NN fix's weight, moved only where the emission weight stayed
-    by_fix = {float(f): v for f, v in scores["hmm_walk_error_m_by_fix_weight"].items()}
-    default_fix = HmmParams().fix_nats
-    assert by_fix[tuning["fix_nats"]] <= by_fix[default_fix]
-    assert tuning["fix_nats"] == default_fix or tuning["emission_weight"] == default
+    # so do the k-NN fix's weight and the transition noise: at most one of the three
+    # replayed constants leaves its default, and only for a candidate that erred less
+    replayed = {
+        "emission_weight": "hmm_walk_error_m_by_weight",
+        "fix_nats": "hmm_walk_error_m_by_fix_weight",
+        "walk_noise_m2_per_s": "hmm_walk_error_m_by_walk_noise",
+    }
+    defaults = HmmParams()
+    moved = [name for name in replayed if tuning[name] != getattr(defaults, name)]
+    assert len(moved) <= 1, moved
+    for name, score_key in replayed.items():
+        by_value = {float(v): e for v, e in scores[score_key].items()}
+        assert by_value[tuning[name]] <= by_value[getattr(defaults, name)]
+    assert set(map(float, scores["hmm_walk_error_m_by_walk_noise"])) == set(WALK_NOISE_CANDIDATES)
     assert scores["emission_log_score_by_weight"] and scores["floor_log_score_by_weight"]
     assert summary["accuracy"]["k"] == tuning["wknn_k"]
-    # beside the WKNN's, the accuracy says what the tracker measured on those replays
+    # beside the WKNN's, the accuracy says what the tracker measured on those replays: the
+    # chosen candidate's
     tracker = summary["accuracy"]["tracker"]
     assert tracker["walks"] == scores["hmm_walks"]
-    chosen = by_fix if tuning["emission_weight"] == default else by_w
-    key = "fix_nats" if tuning["emission_weight"] == default else "emission_weight"
-    assert tracker["mean_walk_error_m"] == chosen[tuning[key]]
+    name = moved[0] if moved else "emission_weight"
+    chosen = {float(v): e for v, e in scores[replayed[name]].items()}
+    assert tracker["mean_walk_error_m"] == chosen[tuning[name]]
     # the radius floor is calibrated on those replays: 0 or more, never the WKNN median's
     # stand-in when replays exist
     assert tuning["accuracy_floor_m"] >= 0.0

@@ -21,6 +21,7 @@ from app.engine.tuning import (
     HEADING_STD_RANGE_DEG,
     SiteTuning,
     heading_spread,
+    one_move_choice,
     one_standard_error_choice,
     tune_site,
 )
@@ -120,6 +121,33 @@ def test_off_is_chosen_only_when_it_beats_every_nearer_candidate() -> None:
     scores[10.0] = (np.asarray(scores[0.0]) + 0.8).tolist()
     scores[20.0] = (np.asarray(scores[0.0]) + 1.5).tolist()
     assert one_standard_error_choice(scores, 10.0) == 0.0
+
+
+def test_at_most_one_replayed_constant_moves_and_it_is_the_move_that_erred_least() -> None:
+    rng = np.random.default_rng(6)
+    hardness = 10.0 + rng.normal(0.0, 5.0, 40)
+
+    def alike(values: tuple[float, ...]) -> dict[float, list[float]]:
+        return {v: (hardness + rng.normal(0.0, 0.05, 40)).tolist() for v in values}
+
+    weights, noises = alike((0.1, 0.2)), alike((0.05, 0.5))
+    # nothing better by more than luck: every default stands
+    assert one_move_choice([weights, noises], (0.2, 0.05)) == (0.2, 0.05)
+    # both would move, the noise by more: only the noise moves (that pair was replayed,
+    # the pair of both moves was not)
+    weights[0.1] = (hardness - 0.5).tolist()
+    noises[0.5] = (hardness - 1.0).tolist()
+    assert one_move_choice([weights, noises], (0.2, 0.05)) == (0.2, 0.5)
+    # a constant nobody replayed keeps its default
+    assert one_move_choice([weights, {}], (0.2, 0.05)) == (0.1, 0.05)
+
+
+def test_the_transition_noise_reaches_the_hmm_and_old_builds_keep_the_default() -> None:
+    tuning = replace(SiteTuning.defaults(), walk_noise_m2_per_s=0.5)
+    assert tuning.hmm().walk_noise_m2_per_s == 0.5
+    assert SiteTuning.from_dict(tuning.as_dict()) == tuning
+    default = HmmParams().walk_noise_m2_per_s
+    assert SiteTuning.from_dict({"fix_nats": 10.0}).hmm().walk_noise_m2_per_s == default
 
 
 def _replayed_walk(seed: int) -> WalkResult:
