@@ -6,8 +6,10 @@ position interpolated between its walk's waypoints, instead of pooling
 scans into grid cells, and compares two scans only on what both heard:
 
 - ``d = Σ_a w_a |s_a - r_a| / Σ_a w_a`` over the transmitters ``a`` both
-  scans heard, with ``w_a = (1 / walks that heard a)^rarity_power`` (rare
-  transmitters say more about where a scan is);
+  scans heard, with ``w_a = (1 / walks that heard a)^rarity_power · (1 +
+  (s_a + r_a) / 2)^level_power`` (rare transmitters say more about where a
+  scan is; with ``level_power`` above 0 strong ones weigh more than those
+  heard near the noise floor, whose level varies most from scan to scan);
 - plus ``penalty · (1 - shared)²``, ``shared`` being the share of the two
   scans' signal (dB above ``floor_dbm``) on common transmitters: what only
   one of them heard counts against the match without imputing a level;
@@ -60,6 +62,11 @@ class ScanKnnParams:
         Exponent of the neighbour weights ``(d / d_min)^-p``.
     no_common_db : float
         Mean absolute difference assumed when two scans share no transmitter.
+    level_power : int
+        Exponent (0, 1 or 2) of a shared transmitter's mean level (dB above
+        ``floor_dbm``, plus 1) in its weight: 0 weighs every shared
+        transmitter alike; a build chooses the site's
+        (``app.engine.scan_knn_cv``).
     """
 
     k: int = 10
@@ -69,6 +76,11 @@ class ScanKnnParams:
     rarity_power: float = 0.2
     weight_power: float = 4.0
     no_common_db: float = 40.0
+    level_power: int = 0
+
+
+LEVEL_POWERS = (0, 1, 2)
+"""The level weights' exponents the compiled distance supports."""
 
 
 @dataclass(frozen=True)
@@ -95,6 +107,8 @@ class ReferenceScans:
 
     def __init__(self, survey: Survey, n_tx: int, params: ScanKnnParams | None = None) -> None:
         self.params = p = params or ScanKnnParams()
+        if p.level_power not in LEVEL_POWERS:
+            raise ValueError(f"level_power must be one of {LEVEL_POWERS}, not {p.level_power}")
         n_tx = max(n_tx, int(survey.reading_tx.max(initial=-1)) + 1)
         tx = survey.reading_tx.astype(np.int64)
         heard = np.bincount(tx, minlength=n_tx)
@@ -186,6 +200,7 @@ class ReferenceScans:
             query_total,
             p.no_common_db,
             p.unshared_penalty,
+            p.level_power,
         )
 
     def _query(self, tx: np.ndarray, rssi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -284,12 +299,15 @@ def _distances(
     query_total: float,
     no_common_db: float,
     penalty: float,
+    level_power: int,
 ) -> np.ndarray:  # pragma: no cover - compiled
     """Return every reference scan's distance to a query, visiting only the pairs both heard.
 
     ``cols`` are the query's transmitters' columns, ``level`` and ``weight``
     their levels (dB above the floor) and rarity weights; ``total`` each
-    reference scan's summed level.
+    reference scan's summed level. A pair's weight is the rarity weight times
+    its mean level plus 1 to the ``level_power`` (0, 1 or 2: products, as a
+    power per pair would cost more than the rest of the visit).
     """
     n = total.size
     common_weight = np.zeros(n)
@@ -299,8 +317,13 @@ def _distances(
         s, w = level[q], weight[q]
         for e in range(col_start[cols[q]], col_start[cols[q] + 1]):
             j, r = ref_scan[e], ref_level[e]
-            common_weight[j] += w
-            weighted_abs[j] += w * abs(s - r)
+            # w_a (1 + (s + r) / 2)^g
+            pair = w
+            if level_power > 0:
+                mean = 1.0 + 0.5 * (s + r)
+                pair = w * mean if level_power == 1 else w * mean * mean
+            common_weight[j] += pair
+            weighted_abs[j] += pair * abs(s - r)
             common_level[j] += r + s
     out = np.empty(n)
     for j in range(n):

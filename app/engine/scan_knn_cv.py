@@ -2,7 +2,8 @@
 
 A build scores its per-scan constants here: how old a WiFi reading may be
 (``app.engine.wifi_age``), how many neighbours the k-NN averages and how
-steeply it weighs them (``choose_neighbours``), and how far its fixes fall
+steeply it weighs them and how much strong transmitters count
+(``choose_neighbours``), and how far its fixes fall
 from the walkers (``fix_spread``). Walk ``w`` is in fold
 ``w mod folds``; every ``every``-th scan of a held-out walk is located on the
 other folds' scans, and each walk's mean error is one sample, so candidates
@@ -17,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 
 from app.engine.radiomap import Survey
-from app.engine.scan_knn import ReferenceScans, ScanKnnParams
+from app.engine.scan_knn import LEVEL_POWERS, ReferenceScans, ScanKnnParams
 from app.engine.tuning import one_standard_error_choice
 
 WRONG_FLOOR_M = 20.0
@@ -31,12 +32,12 @@ POWER_CANDIDATES = (2.0, 3.0, 4.0, 6.0, 8.0)
 
 
 def _held_out(
-    survey: Survey, n_tx: int, folds: int, every: int
+    survey: Survey, n_tx: int, folds: int, every: int, params: ScanKnnParams
 ) -> Iterator[tuple[ReferenceScans, int, np.ndarray]]:
     """Yield (other folds' references, scan row, its distances to them) per held-out scan.
 
-    Every ``every``-th scan of each fold is held out in turn; scans sharing no
-    transmitter with the other folds are skipped.
+    Distances are ``params``'. Every ``every``-th scan of each fold is held
+    out in turn; scans sharing no transmitter with the other folds are skipped.
     """
     k = min(folds, np.unique(survey.scan_walk).size)
     if k < 2:
@@ -48,7 +49,7 @@ def _held_out(
         held = fold_of_scan == fold
         if held.all() or not held.any():
             continue
-        refs = ReferenceScans(survey.select(~held), n_tx)
+        refs = ReferenceScans(survey.select(~held), n_tx, params)
         for j in np.flatnonzero(held)[::every]:
             rows = by_scan[starts[j] : starts[j + 1]]
             d = refs.distances(survey.reading_tx[rows], survey.reading_rssi[rows])
@@ -63,18 +64,20 @@ def walk_errors(
     *,
     every: int = 2,
     variants: Sequence[tuple[int, float]] = (),
+    params: ScanKnnParams | None = None,
 ) -> list[dict[int, float]]:
     """Return each walk's mean held-out per-scan k-NN error (m), one mapping per variant.
 
     ``variants`` are (k, weight power) pairs located from the same distances
-    (the default constants' alone when empty). A scan on a wrong floor counts
+    (``params``', the defaults when None; ``params``' own k and power alone when
+    empty). A scan on a wrong floor counts
     as ``WRONG_FLOOR_M``; a scan that shares no transmitter with the other
     folds is not scored; fewer than two folds score nothing.
     """
-    base = ScanKnnParams()
+    base = params or ScanKnnParams()
     pairs = list(variants) or [(base.k, base.weight_power)]
     errors: list[dict[int, list[float]]] = [{} for _ in pairs]
-    for refs, j, d in _held_out(survey, n_tx, folds, every):
+    for refs, j, d in _held_out(survey, n_tx, folds, every, base):
         walk = int(survey.scan_walk[j])
         for v, (n, power) in enumerate(pairs):
             fix = refs.fix(d, n, power)
@@ -95,7 +98,7 @@ def fix_spread(
     (``HmmParams.fix_sigma_m``). None when no scan was scored.
     """
     squares = []
-    for refs, j, d in _held_out(survey, n_tx, folds, every):
+    for refs, j, d in _held_out(survey, n_tx, folds, every, params):
         fix = refs.fix(d, params.k, params.weight_power)
         assert fix is not None
         if fix.floor == survey.scan_floor[j]:
@@ -114,26 +117,37 @@ def paired_scores(by_candidate: Mapping[float, Mapping[int, float]]) -> dict[flo
 def choose_neighbours(
     survey: Survey, n_tx: int, folds: int
 ) -> tuple[ScanKnnParams, dict[str, dict[float, list[float]]]]:
-    """Return k-NN constants with the site's neighbour count and weight power, and the scores.
+    """Return k-NN constants with the site's level, neighbour and weight powers; the scores.
 
-    The scores are every candidate's walk errors, by constant. The weight
-    power is chosen first, at the default k; then k at that power. Each is
-    the candidate nearest the default that is as good as the best walk by
-    walk. The build of ILC site1's 457 training walks (five folds, every
-    other scan, readings up to 8 s old) measured 5.978 m at the defaults (k
-    10, power 4), 5.915 m at power 6 and 5.894 m at 8, then 5.94, 5.913 and
-    5.931 m at k 5, 15 and 20, and took power 8 and k 10: a steeper power
-    trusts the best match more where the survey is dense.
+    The scores are every candidate's walk errors, by constant. The level
+    power is chosen first, at the default k and weight power; then the weight
+    power at the default k; then k at that power. Each is the candidate
+    nearest the default that is as good as the best walk by walk. The build
+    of ILC site1's 457 training walks (five folds, every other scan, readings
+    up to 8 s old) measured 5.978 m at the defaults (k 10, power 4), 5.915 m
+    at power 6 and 5.894 m at 8, then 5.94, 5.913 and 5.931 m at k 5, 15 and
+    20, and took power 8 and k 10: a steeper power trusts the best match more
+    where the survey is dense.
     """
     base = ScanKnnParams()
+    by_level = paired_scores(
+        {
+            float(g): walk_errors(survey, n_tx, folds, params=replace(base, level_power=g))[0]
+            for g in LEVEL_POWERS
+        }
+    )
+    if not all(by_level.values()):
+        return base, {}
+    level = replace(base, level_power=int(one_standard_error_choice(by_level, base.level_power)))
     pairs = [(base.k, p) for p in POWER_CANDIDATES] + [
         (k, p) for k in K_CANDIDATES if k != base.k for p in POWER_CANDIDATES
     ]
-    found = dict(zip(pairs, walk_errors(survey, n_tx, folds, variants=pairs), strict=True))
-    if not all(found.values()):
-        return base, {}
+    found = dict(
+        zip(pairs, walk_errors(survey, n_tx, folds, variants=pairs, params=level), strict=True)
+    )
     by_power = paired_scores({p: found[(base.k, p)] for p in POWER_CANDIDATES})
     power = one_standard_error_choice(by_power, base.weight_power)
     by_k = paired_scores({float(k): found[(k, power)] for k in K_CANDIDATES})
     k = int(one_standard_error_choice(by_k, float(base.k)))
-    return replace(base, k=k, weight_power=power), {"weight_power": by_power, "k": by_k}
+    scores = {"level_power": by_level, "weight_power": by_power, "k": by_k}
+    return replace(level, k=k, weight_power=power), scores

@@ -105,6 +105,9 @@ class SiteTuning:
         Survey scans the per-scan k-NN averages (``app.engine.scan_knn_cv``).
     scan_knn_power : float
         Exponent of its neighbour weights ``(d / d_min)^-p``.
+    scan_knn_level_power : int
+        Exponent of a shared transmitter's level in its weight in the scan
+        distance (``ScanKnnParams.level_power``).
     fix_sigma_m : float
         Spread (m) of each neighbour of the HMM's k-NN fix: the root mean
         square of the held-out k-NN errors (``app.engine.scan_knn_cv``).
@@ -127,6 +130,7 @@ class SiteTuning:
     wifi_max_age_ms: int = DEFAULT_MAX_AGE_MS
     scan_knn_k: int = ScanKnnParams().k
     scan_knn_power: float = ScanKnnParams().weight_power
+    scan_knn_level_power: int = ScanKnnParams().level_power
     fix_sigma_m: float = HmmParams().fix_sigma_m
     walk_noise_m2_per_s: float = HmmParams().walk_noise_m2_per_s
 
@@ -183,8 +187,13 @@ class SiteTuning:
         )
 
     def scan_knn(self, base: ScanKnnParams | None = None) -> ScanKnnParams:
-        """Return per-scan k-NN constants with the site's neighbour count and weight power."""
-        return replace(base or ScanKnnParams(), k=self.scan_knn_k, weight_power=self.scan_knn_power)
+        """Return per-scan k-NN constants with the site's neighbour count and powers."""
+        return replace(
+            base or ScanKnnParams(),
+            k=self.scan_knn_k,
+            weight_power=self.scan_knn_power,
+            level_power=self.scan_knn_level_power,
+        )
 
     def fixed_lag(self, base: SmootherParams | None = None) -> SmootherParams:
         """Return the live fixed-lag smoother's constants with the site's fix scale."""

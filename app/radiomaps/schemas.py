@@ -96,6 +96,9 @@ class SiteTuningRead(BaseModel):
     """Survey scans the per-scan k-NN averages."""
     scan_knn_power: float = 4.0
     """Exponent of the per-scan k-NN's neighbour weights (d / d_min)^-p."""
+    scan_knn_level_power: int = 0
+    """Exponent of a shared transmitter's mean level (+1 dB) in its weight in the scan
+    distance."""
     fix_sigma_m: float = 8.0
     """Spread (m) of each neighbour of the HMM's k-NN fix: the held-out k-NN errors' RMS."""
     walk_noise_m2_per_s: float = 0.05
@@ -117,6 +120,7 @@ class TuningScores(BaseModel):
     emission_scans: int
     knn_walk_error_m_by_wifi_max_age_ms: dict[str, float | None] = {}
     knn_walk_error_m_by_weight_power: dict[str, float | None] = {}
+    knn_walk_error_m_by_level_power: dict[str, float | None] = {}
     knn_walk_error_m_by_k: dict[str, float | None] = {}
 
 

@@ -235,6 +235,7 @@ def _with_knn(tuning: SiteTuning, knn: ScanKnnParams, spread: float | None) -> S
         tuning,
         scan_knn_k=knn.k,
         scan_knn_power=knn.weight_power,
+        scan_knn_level_power=knn.level_power,
         fix_sigma_m=tuning.fix_sigma_m if spread is None else round(spread, 3),
     )
 
@@ -647,6 +648,9 @@ def _tuning_scores(
         },
         "knn_walk_error_m_by_weight_power": {
             str(p): _r(float(np.mean(v))) for p, v in knn_scores.get("weight_power", {}).items()
+        },
+        "knn_walk_error_m_by_level_power": {
+            str(int(g)): _r(float(np.mean(v))) for g, v in knn_scores.get("level_power", {}).items()
         },
         "knn_walk_error_m_by_k": {
             str(int(k)): _r(float(np.mean(v))) for k, v in knn_scores.get("k", {}).items()

@@ -186,6 +186,31 @@ def test_the_distance_is_the_mean_difference_on_shared_transmitters_plus_the_uns
     assert d == pytest.approx([2.5, 10.0 + 50.0 * (1.0 - 50.0 / 135.0) ** 2])
 
 
+def test_with_a_level_power_strong_shared_transmitters_weigh_more() -> None:
+    # the query hears tx 0 strongly (-50) and tx 1 near the floor (-90); the survey scan
+    # heard tx 0 at -60 and tx 1 at -70: levels 50 against 40, 10 against 30
+    survey = Survey(
+        scan_t=np.array([0], dtype=np.int64),
+        scan_xy=np.array([[0.0, 0.0]]),
+        scan_floor=np.zeros(1, dtype=np.int32),
+        scan_walk=np.array([0], dtype=np.int32),
+        reading_scan=np.array([0, 0], dtype=np.int32),
+        reading_tx=np.array([0, 1], dtype=np.int32),
+        reading_rssi=np.array([-60.0, -70.0]),
+    )
+    base = ScanKnnParams(min_heard=1, rarity_power=0.0, unshared_penalty=0.0)
+    query = (np.array([0, 1]), np.array([-50.0, -90.0]))
+    plain = ReferenceScans(survey, 2, base).distances(*query)
+    # w = (1 + (s + r) / 2)^g: 46 for tx 0, 21 for tx 1
+    by_level = ReferenceScans(survey, 2, replace(base, level_power=1)).distances(*query)
+    squared = ReferenceScans(survey, 2, replace(base, level_power=2)).distances(*query)
+    assert plain == pytest.approx([(10.0 + 20.0) / 2])
+    assert by_level == pytest.approx([(46 * 10.0 + 21 * 20.0) / (46 + 21)])
+    assert squared == pytest.approx([(46**2 * 10.0 + 21**2 * 20.0) / (46**2 + 21**2)])
+    with pytest.raises(ValueError, match="level_power"):
+        ReferenceScans(survey, 2, replace(base, level_power=3))
+
+
 def test_the_hmm_knn_fix_is_a_mixture_at_the_scans_neighbours_relative_to_its_peak(
     survey: Survey,
 ) -> None:
