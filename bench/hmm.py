@@ -109,6 +109,10 @@ def main(argv: list[str] | None = None) -> None:
     load_pdr_kernel()
     load_grouping()
     load_solver()
+    # and whatever else the tracker compiles on its first scans: one walk, untimed
+    warm = HmmTracker(model, HmmParams(), PdrParams())
+    for batch in batches[0]:
+        warm.process(batch)
     update_ms, smoother_ms = [], []
     for walk in batches:
         tracker = HmmTracker(model, HmmParams(), PdrParams())
