@@ -3,8 +3,8 @@
 A build scores its per-scan constants here: how old a WiFi reading may be
 (``app.engine.wifi_age``), how many neighbours the k-NN averages and how
 steeply it weighs them and how much strong transmitters count
-(``choose_neighbours``), and how far its fixes fall
-from the walkers (``fix_spread``). Walk ``w`` is in fold
+(``choose_neighbours``), and how far its fixes fall from the walkers
+(``fix_spread``). Walk ``w`` is in fold
 ``w mod folds``; every ``every``-th scan of a held-out walk is located on the
 other folds' scans, and each walk's mean error is one sample, so candidates
 are compared walk by walk (``app.engine.tuning.one_standard_error_choice``).
@@ -69,10 +69,10 @@ def walk_errors(
     """Return each walk's mean held-out per-scan k-NN error (m), one mapping per variant.
 
     ``variants`` are (k, weight power) pairs located from the same distances
-    (``params``', the defaults when None; ``params``' own k and power alone when
-    empty). A scan on a wrong floor counts
-    as ``WRONG_FLOOR_M``; a scan that shares no transmitter with the other
-    folds is not scored; fewer than two folds score nothing.
+    (``params``', the defaults when None; ``params``' own k and power alone
+    when empty). A scan on a wrong floor counts as ``WRONG_FLOOR_M``; a scan
+    that shares no transmitter with the other folds is not scored; fewer than
+    two folds score nothing.
     """
     base = params or ScanKnnParams()
     pairs = list(variants) or [(base.k, base.weight_power)]
@@ -117,17 +117,18 @@ def paired_scores(by_candidate: Mapping[float, Mapping[int, float]]) -> dict[flo
 def choose_neighbours(
     survey: Survey, n_tx: int, folds: int
 ) -> tuple[ScanKnnParams, dict[str, dict[float, list[float]]]]:
-    """Return k-NN constants with the site's level, neighbour and weight powers; the scores.
+    """Return k-NN constants with the site's level power, neighbours and weight power.
 
-    The scores are every candidate's walk errors, by constant. The level
-    power is chosen first, at the default k and weight power; then the weight
-    power at the default k; then k at that power. Each is the candidate
-    nearest the default that is as good as the best walk by walk. The build
-    of ILC site1's 457 training walks (five folds, every other scan, readings
-    up to 8 s old) measured 5.978 m at the defaults (k 10, power 4), 5.915 m
-    at power 6 and 5.894 m at 8, then 5.94, 5.913 and 5.931 m at k 5, 15 and
-    20, and took power 8 and k 10: a steeper power trusts the best match more
-    where the survey is dense.
+    The scores returned beside them are every candidate's walk errors, by
+    constant. The level power is chosen first, at the default k and weight
+    power; then the weight power at the default k; then k at that power. Each
+    is the candidate nearest the default that is as good as the best walk by
+    walk. The build of ILC site1's 457 training walks (five folds, every other
+    scan, readings up to 8 s old) kept level power 0 (5.987 m at 1, 6.028 m
+    at 2; a two-floor, half-survey subset took 2), measured 5.978 m at the
+    defaults (k 10, power 4), 5.915 m at power 6 and 5.894 m at 8, then 5.94,
+    5.913 and 5.931 m at k 5, 15 and 20, and took power 8 and k 10: a steeper
+    power trusts the best match more where the survey is dense.
     """
     base = ScanKnnParams()
     by_level = paired_scores(

@@ -52,8 +52,8 @@ then pulls the track the wrong way."""
 WALK_NOISE_CANDIDATES = (0.02, 0.05, 0.15, 0.5)
 """Transition noise (m² per second, ``HmmParams.walk_noise_m2_per_s``) a build replays
 held-out walks with: how far the walker may stray from the steps between scans. Phones
-whose steps are poorly counted or oriented need more; on site1's validation walks 0.02 to
-0.5 spanned 0.53 m of mean error."""
+whose steps are poorly counted or oriented need more; on 58 of site1's validation walks
+the HMM erred 6.885 m at 0.02 and 7.262 m at 0.5."""
 
 SMOOTHER_FIX_SCALE_CANDIDATES = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0)
 """Factors on the positions' σ a build scores the fixed-lag and full-pass smoothers with,
