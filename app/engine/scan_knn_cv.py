@@ -131,24 +131,24 @@ def choose_neighbours(
     power trusts the best match more where the survey is dense.
     """
     base = ScanKnnParams()
-    by_level = paired_scores(
-        {
-            float(g): walk_errors(survey, n_tx, folds, params=replace(base, level_power=g))[0]
-            for g in LEVEL_POWERS
-        }
-    )
-    if not all(by_level.values()):
-        return base, {}
-    level = replace(base, level_power=int(one_standard_error_choice(by_level, base.level_power)))
     pairs = [(base.k, p) for p in POWER_CANDIDATES] + [
         (k, p) for k in K_CANDIDATES if k != base.k for p in POWER_CANDIDATES
     ]
-    found = dict(
-        zip(pairs, walk_errors(survey, n_tx, folds, variants=pairs, params=level), strict=True)
-    )
-    by_power = paired_scores({p: found[(base.k, p)] for p in POWER_CANDIDATES})
+
+    def by_pair(level_power: int) -> dict[tuple[int, float], dict[int, float]]:
+        # every (k, power) pair from one pass of distances: the distances are the cost
+        params = replace(base, level_power=level_power)
+        errors = walk_errors(survey, n_tx, folds, variants=pairs, params=params)
+        return dict(zip(pairs, errors, strict=True))
+
+    found = {g: by_pair(g) for g in LEVEL_POWERS}
+    by_level = paired_scores({float(g): f[(base.k, base.weight_power)] for g, f in found.items()})
+    if not all(by_level.values()):
+        return base, {}
+    level = int(one_standard_error_choice(by_level, base.level_power))
+    by_power = paired_scores({p: found[level][(base.k, p)] for p in POWER_CANDIDATES})
     power = one_standard_error_choice(by_power, base.weight_power)
-    by_k = paired_scores({float(k): found[(k, power)] for k in K_CANDIDATES})
+    by_k = paired_scores({float(k): found[level][(k, power)] for k in K_CANDIDATES})
     k = int(one_standard_error_choice(by_k, float(base.k)))
     scores = {"level_power": by_level, "weight_power": by_power, "k": by_k}
-    return replace(level, k=k, weight_power=power), scores
+    return replace(base, level_power=level, k=k, weight_power=power), scores

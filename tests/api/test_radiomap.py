@@ -423,7 +423,7 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     by_age = {int(a): v for a, v in scores["knn_walk_error_m_by_wifi_max_age_ms"].items()}
     assert set(by_age) == set(AGE_CANDIDATES_MS)
     assert by_age[tuning["wifi_max_age_ms"]] <= by_age[DEFAULT_MAX_AGE_MS]
-    # the per-scan k-NN's level weighting, weight power and k: each scored the same way
+    # the per-scan k-NN's level weighting and weight power: each scored the same way
     for key, score_key, default in (
         ("scan_knn_level_power", "knn_walk_error_m_by_level_power", 0),
         ("scan_knn_power", "knn_walk_error_m_by_weight_power", 4.0),
