@@ -1,9 +1,10 @@
 """The per-scan k-NN cross-validated on a site's own surveys, whole walks held out in turn.
 
 A build scores its per-scan constants here: how old a WiFi reading may be
-(``app.engine.wifi_age``), how many neighbours the k-NN averages and how
-steeply it weighs them and how much strong transmitters count
-(``choose_neighbours``), and how far its fixes fall from the walkers
+(``app.engine.wifi_age``); the signal level counted as nothing and what a
+transmitter only one scan heard costs, how many neighbours the k-NN
+averages, how steeply it weighs them and how much strong transmitters count
+(``choose_neighbours``); and how far its fixes fall from the walkers
 (``fix_spread``). Walk ``w`` is in fold
 ``w mod folds``; every ``every``-th scan of a held-out walk is located on the
 other folds' scans, and each walk's mean error is one sample, so candidates
@@ -29,6 +30,15 @@ K_CANDIDATES = (5, 10, 15, 20)
 
 POWER_CANDIDATES = (2.0, 3.0, 4.0, 6.0, 8.0)
 """Exponents of the neighbour weights ``(d / d_min)^-p`` a build tries."""
+
+FLOOR_CANDIDATES_DBM = (-100.0, -95.0, -90.0, -85.0, -80.0, -75.0)
+"""Signal levels counted as nothing (``ScanKnnParams.floor_dbm``) a build tries: where
+readings near a phone's sensitivity say more noise than place depends on the
+phones and on how densely the access points stand."""
+
+PENALTY_CANDIDATES = (25.0, 50.0, 100.0)
+"""Distances (dB) for two scans sharing nothing (``ScanKnnParams.unshared_penalty``) a
+build tries."""
 
 
 def _held_out(
@@ -117,13 +127,16 @@ def paired_scores(by_candidate: Mapping[float, Mapping[int, float]]) -> dict[flo
 def choose_neighbours(
     survey: Survey, n_tx: int, folds: int
 ) -> tuple[ScanKnnParams, dict[str, dict[float, list[float]]]]:
-    """Return k-NN constants with the site's level power, neighbours and weight power.
+    """Return k-NN constants with the site's signal floor, penalty, neighbours and powers.
 
     The scores returned beside them are every candidate's walk errors, by
-    constant. The level power is chosen first, at the default k and weight
-    power; then the weight power at the default k; then k at that power. Each
-    is the candidate nearest the default that is as good as the best walk by
-    walk. The build of ILC site1's 457 training walks (five folds, every other
+    constant. Each constant is chosen in turn, the ones before it at their
+    chosen values and the ones after at their defaults: the signal floor,
+    then the penalty for what one scan heard alone (both at the default k and
+    weight power), the level power, the weight power, and k. Each is the
+    candidate nearest the default that is as good as the best walk by walk.
+
+    The build of ILC site1's 457 training walks (five folds, every other
     scan, readings up to 8 s old) kept level power 0 (5.987 m at 1, 6.028 m
     at 2; a two-floor, half-survey subset took 2), measured 5.978 m at the
     defaults (k 10, power 4), 5.915 m at power 6 and 5.894 m at 8, then 5.94,
@@ -131,24 +144,46 @@ def choose_neighbours(
     power trusts the best match more where the survey is dense.
     """
     base = ScanKnnParams()
+    default_pair = [(base.k, base.weight_power)]
     pairs = [(base.k, p) for p in POWER_CANDIDATES] + [
         (k, p) for k in K_CANDIDATES if k != base.k for p in POWER_CANDIDATES
     ]
+    passes: dict[ScanKnnParams, dict[tuple[int, float], dict[int, float]]] = {}
 
-    def by_pair(level_power: int) -> dict[tuple[int, float], dict[int, float]]:
+    def scored(params: ScanKnnParams, wanted: list[tuple[int, float]]) -> dict:
         # every (k, power) pair from one pass of distances: the distances are the cost
-        params = replace(base, level_power=level_power)
-        errors = walk_errors(survey, n_tx, folds, variants=pairs, params=params)
-        return dict(zip(pairs, errors, strict=True))
+        known = passes.get(params, {})
+        if not all(pair in known for pair in wanted):
+            errors = walk_errors(survey, n_tx, folds, variants=wanted, params=params)
+            passes[params] = known | dict(zip(wanted, errors, strict=True))
+        return passes[params]
 
-    found = {g: by_pair(g) for g in LEVEL_POWERS}
-    by_level = paired_scores({float(g): f[(base.k, base.weight_power)] for g, f in found.items()})
-    if not all(by_level.values()):
+    def at_default(params: ScanKnnParams) -> dict[int, float]:
+        return scored(params, default_pair)[default_pair[0]]
+
+    by_floor = paired_scores(
+        {f: at_default(replace(base, floor_dbm=f)) for f in FLOOR_CANDIDATES_DBM}
+    )
+    if not all(by_floor.values()):
         return base, {}
+    chosen = replace(base, floor_dbm=one_standard_error_choice(by_floor, base.floor_dbm))
+    by_penalty = paired_scores(
+        {c: at_default(replace(chosen, unshared_penalty=c)) for c in PENALTY_CANDIDATES}
+    )
+    penalty = one_standard_error_choice(by_penalty, base.unshared_penalty)
+    chosen = replace(chosen, unshared_penalty=penalty)
+    found = {g: scored(replace(chosen, level_power=g), pairs) for g in LEVEL_POWERS}
+    by_level = paired_scores({float(g): f[default_pair[0]] for g, f in found.items()})
     level = int(one_standard_error_choice(by_level, base.level_power))
     by_power = paired_scores({p: found[level][(base.k, p)] for p in POWER_CANDIDATES})
     power = one_standard_error_choice(by_power, base.weight_power)
     by_k = paired_scores({float(k): found[level][(k, power)] for k in K_CANDIDATES})
     k = int(one_standard_error_choice(by_k, float(base.k)))
-    scores = {"level_power": by_level, "weight_power": by_power, "k": by_k}
-    return replace(base, level_power=level, k=k, weight_power=power), scores
+    scores = {
+        "floor_dbm": by_floor,
+        "unshared_penalty": by_penalty,
+        "level_power": by_level,
+        "weight_power": by_power,
+        "k": by_k,
+    }
+    return replace(chosen, level_power=level, k=k, weight_power=power), scores

@@ -108,6 +108,11 @@ class SiteTuning:
     scan_knn_level_power : int
         Exponent of a shared transmitter's level in its weight in the scan
         distance (``ScanKnnParams.level_power``).
+    scan_knn_floor_dbm : float
+        Signal level the scan distance counts as nothing (``ScanKnnParams.floor_dbm``).
+    scan_knn_unshared_penalty : float
+        Scan distance (dB) of two scans sharing nothing
+        (``ScanKnnParams.unshared_penalty``).
     fix_sigma_m : float
         Spread (m) of each neighbour of the HMM's k-NN fix: the root mean
         square of the held-out k-NN errors (``app.engine.scan_knn_cv``).
@@ -131,6 +136,8 @@ class SiteTuning:
     scan_knn_k: int = ScanKnnParams().k
     scan_knn_power: float = ScanKnnParams().weight_power
     scan_knn_level_power: int = ScanKnnParams().level_power
+    scan_knn_floor_dbm: float = ScanKnnParams().floor_dbm
+    scan_knn_unshared_penalty: float = ScanKnnParams().unshared_penalty
     fix_sigma_m: float = HmmParams().fix_sigma_m
     walk_noise_m2_per_s: float = HmmParams().walk_noise_m2_per_s
 
@@ -187,12 +194,14 @@ class SiteTuning:
         )
 
     def scan_knn(self, base: ScanKnnParams | None = None) -> ScanKnnParams:
-        """Return per-scan k-NN constants with the site's neighbour count and powers."""
+        """Return per-scan k-NN constants with the site's neighbours, powers and distance."""
         return replace(
             base or ScanKnnParams(),
             k=self.scan_knn_k,
             weight_power=self.scan_knn_power,
             level_power=self.scan_knn_level_power,
+            floor_dbm=self.scan_knn_floor_dbm,
+            unshared_penalty=self.scan_knn_unshared_penalty,
         )
 
     def fixed_lag(self, base: SmootherParams | None = None) -> SmootherParams:

@@ -99,6 +99,10 @@ class SiteTuningRead(BaseModel):
     scan_knn_level_power: int = 0
     """Exponent of a shared transmitter's mean level (+1 dB) in its weight in the scan
     distance."""
+    scan_knn_floor_dbm: float = -100.0
+    """Signal level (dBm) the scan distance counts as nothing."""
+    scan_knn_unshared_penalty: float = 50.0
+    """Scan distance (dB) of two scans that share nothing."""
     fix_sigma_m: float = 8.0
     """Spread (m) of each neighbour of the HMM's k-NN fix: the held-out k-NN errors' RMS."""
     walk_noise_m2_per_s: float = 0.05
@@ -120,6 +124,8 @@ class TuningScores(BaseModel):
     emission_scans: int
     knn_walk_error_m_by_wifi_max_age_ms: dict[str, float | None] = {}
     knn_walk_error_m_by_weight_power: dict[str, float | None] = {}
+    knn_walk_error_m_by_floor_dbm: dict[str, float | None] = {}
+    knn_walk_error_m_by_unshared_penalty: dict[str, float | None] = {}
     knn_walk_error_m_by_level_power: dict[str, float | None] = {}
     knn_walk_error_m_by_k: dict[str, float | None] = {}
 

@@ -236,6 +236,8 @@ def _with_knn(tuning: SiteTuning, knn: ScanKnnParams, spread: float | None) -> S
         scan_knn_k=knn.k,
         scan_knn_power=knn.weight_power,
         scan_knn_level_power=knn.level_power,
+        scan_knn_floor_dbm=knn.floor_dbm,
+        scan_knn_unshared_penalty=knn.unshared_penalty,
         fix_sigma_m=tuning.fix_sigma_m if spread is None else round(spread, 3),
     )
 
@@ -648,6 +650,12 @@ def _tuning_scores(
         },
         "knn_walk_error_m_by_weight_power": {
             str(p): _r(float(np.mean(v))) for p, v in knn_scores.get("weight_power", {}).items()
+        },
+        "knn_walk_error_m_by_floor_dbm": {
+            str(f): _r(float(np.mean(v))) for f, v in knn_scores.get("floor_dbm", {}).items()
+        },
+        "knn_walk_error_m_by_unshared_penalty": {
+            str(c): _r(float(np.mean(v))) for c, v in knn_scores.get("unshared_penalty", {}).items()
         },
         "knn_walk_error_m_by_level_power": {
             str(int(g)): _r(float(np.mean(v))) for g, v in knn_scores.get("level_power", {}).items()

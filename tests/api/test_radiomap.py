@@ -21,6 +21,7 @@ from app.engine.hmm.params import HmmParams
 from app.engine.pdr import detect_steps
 from app.engine.samples import Estimate
 from app.engine.scan_knn import LEVEL_POWERS
+from app.engine.scan_knn_cv import FLOOR_CANDIDATES_DBM
 from app.engine.smoothing import SmootherParams
 from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES, WALK_NOISE_CANDIDATES
 from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
@@ -423,14 +424,18 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     by_age = {int(a): v for a, v in scores["knn_walk_error_m_by_wifi_max_age_ms"].items()}
     assert set(by_age) == set(AGE_CANDIDATES_MS)
     assert by_age[tuning["wifi_max_age_ms"]] <= by_age[DEFAULT_MAX_AGE_MS]
-    # the per-scan k-NN's level weighting and weight power: each scored the same way
+    # the per-scan k-NN's signal floor, penalty, level weighting and weight power: each
+    # scored the same way
     for key, score_key, default in (
+        ("scan_knn_floor_dbm", "knn_walk_error_m_by_floor_dbm", -100.0),
+        ("scan_knn_unshared_penalty", "knn_walk_error_m_by_unshared_penalty", 50.0),
         ("scan_knn_level_power", "knn_walk_error_m_by_level_power", 0),
         ("scan_knn_power", "knn_walk_error_m_by_weight_power", 4.0),
     ):
         by_value = {float(v): e for v, e in scores[score_key].items()}
         assert by_value[float(tuning[key])] <= by_value[default]
     assert set(map(int, scores["knn_walk_error_m_by_level_power"])) == set(LEVEL_POWERS)
+    assert set(map(float, scores["knn_walk_error_m_by_floor_dbm"])) == set(FLOOR_CANDIDATES_DBM)
 
 
 @needs_site1

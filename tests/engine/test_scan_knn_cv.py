@@ -8,7 +8,9 @@ import pytest
 from app.engine.radiomap import Survey
 from app.engine.scan_knn import LEVEL_POWERS, ReferenceScans, ScanKnnParams
 from app.engine.scan_knn_cv import (
+    FLOOR_CANDIDATES_DBM,
     K_CANDIDATES,
+    PENALTY_CANDIDATES,
     POWER_CANDIDATES,
     WRONG_FLOOR_M,
     choose_neighbours,
@@ -97,9 +99,13 @@ def test_the_neighbours_chosen_are_the_rule_s_choice_among_paired_walk_scores() 
     xs = np.arange(0.0, 40.5, 1.0)
     survey = Survey.concat([_walk(xs + 0.25 * w, rng, w) for w in range(4)])
     chosen, scores = choose_neighbours(survey, n_tx=5, folds=2)
+    assert set(scores["floor_dbm"]) == set(FLOOR_CANDIDATES_DBM)
+    assert set(scores["unshared_penalty"]) == set(PENALTY_CANDIDATES)
     assert set(scores["level_power"]) == {float(g) for g in LEVEL_POWERS}
     assert set(scores["weight_power"]) == set(POWER_CANDIDATES)
     assert set(scores["k"]) == {float(k) for k in K_CANDIDATES}
+    assert chosen.floor_dbm == one_standard_error_choice(scores["floor_dbm"], -100.0)
+    assert chosen.unshared_penalty == one_standard_error_choice(scores["unshared_penalty"], 50.0)
     assert chosen.level_power == one_standard_error_choice(scores["level_power"], 0.0)
     assert chosen.weight_power == one_standard_error_choice(scores["weight_power"], 4.0)
     assert chosen.k == one_standard_error_choice(scores["k"], 10.0)
