@@ -1,20 +1,26 @@
 """Measure the track fitter (seed 004 with the hypothesis search) on ILC site1's held-out walks.
 
-For every test walk (``walk_split`` by walk id) the dead-reckoned track is
-built from the walk's own IMU with the engine's PDR (steps with Weinberg
-length and rotation-vector heading), starting at the first waypoint at its
-time; with ``--simulate`` it is instead simulated from the surveyed path with
-a phone's errors (a per-walker step scale, per-step length noise, an initial
-heading offset and a slowly drifting gyro bias), seeded by the walk id. The
-fitter receives what a device in energy-saving mode would upload: the start
+A fresh ``locus serve`` is surveyed with the training walks and builds its
+radio maps through the API (split by walk, never by sample; the build chooses
+the site's k-NN constants from those surveys alone). Every fit is then the
+server's own: the body a device would upload goes through the service that
+turns a ``POST /v1/tracks`` into a pool job (on the server's database,
+nothing stored) and through the very function the pool runs (``run_fit``).
+
+For every held-out walk the dead-reckoned track is built from the walk's own
+IMU with the engine's PDR (steps with Weinberg length and rotation-vector
+heading), starting at the first waypoint at its time; with ``--simulate`` it
+is instead simulated from the surveyed path with a phone's errors (a
+per-walker step scale, per-step length noise, an initial heading offset and a
+slowly drifting gyro bias), seeded by the walk id. The upload is the start
 point and the track as links (length, turn), one link per step or steps
 merged into straight links between turns (Ramer–Douglas–Peucker).
 
 Four settings: the first heading withheld (the paper's case) or given, and
 WiFi anchors or none. Anchors are one of the walk's own scans every
-``--scan-every`` seconds, each ending a link of its own at the step nearest
-in time (a device ends a segment where it scans), scored against radio maps
-built from the TRAINING walks only (split by walk, never by sample).
+``--scan-every`` seconds (its readings heard within 2 s of the scan), each
+ending a link of its own at the step nearest in time (a device ends a
+segment where it scans).
 
 Positions are compared with the surveyed waypoints at the waypoints' times
 (the first waypoint, the given start, excluded). A fitted link is a scaled
@@ -22,36 +28,33 @@ and rotated copy of its raw chord, so the steps inside a merged link are
 carried along by the same similarity before interpolating in time. A fit that
 fails is scored with the raw track (what a server falls back to) and counted.
 
-Run ``locus eval trackfit [--simulate] [--split validation]``.
+Run ``locus eval trackfit [--simulate] [--validation-fraction 0.2]``; the
+fitter's constants can be overridden for a study (``--anchor-weight`` …), and
+the table then says so.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
-from dataclasses import dataclass, replace
-from pathlib import Path
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 
-from app.datasets import data_dir
-from app.datasets.ilc import Walk, imu_samples, read_floor, site_walks
+from app.core.config import Settings
+from app.core.db import make_engine, make_sessionmaker
+from app.datasets.ilc import Walk, fresh_wifi, imu_samples
 from app.engine.pdr import detect_steps
-from app.engine.plan import FloorPlan
-from app.engine.radiomap import RadioMap, RadioMapParams
-from app.engine.scan_knn import ReferenceScans
-from app.engine.scans import ScanParams, group_scans
-from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
-from app.engine.trackfit.search import TrackSearchParams, search_track
-from app.evaluation.ilc.learn import radio_maps
-from app.evaluation.ilc.recordings import SiteRecordings, read_site_recordings, survey_of
+from app.engine.trackfit.search import TrackSearchParams
+from app.evaluation.ilc.recordings import MAX_WIFI_AGE_MS
+from app.evaluation.ilc.server import SITE_ID, add_site_arguments, built_site, split_site
 from app.evaluation.metrics import truth_at
-from app.evaluation.split import split_ids
-from app.geometry.floormap import parse_floor_map
-from app.geometry.raster import floor_plan
-
-RASTER_CELL_M = 0.25
-"""Raster of the plans: the service's default (``Settings.raster_cell``)."""
+from app.tracks.fitting import run_fit
+from app.tracks.schemas import TrackCreate
+from app.tracks.service import create_track
 
 MERGE_TOLERANCE_M = 1.0
 """Steps are merged into one link while no step point strays further than
@@ -229,43 +232,74 @@ def simulated_track(waypoints: np.ndarray, errors: SimulatedErrors, seed: int) -
     return RawTrack(t=t.astype(np.int64), xy=xy)
 
 
-def anchor_scans(
-    site: SiteRecordings, walk: Walk, step_t: np.ndarray, every_s: float
-) -> list[WifiScan]:
-    """Return one of the walk's scans every ``every_s``, each at the raw step nearest in time
-    (its ``point`` is that step's index).
+@dataclass(frozen=True)
+class AnchorScan:
+    """One scan a device uploads at raw step ``step``: its readings as the API takes them."""
+
+    step: int
+    wifi: list[dict[str, Any]]
+
+
+def anchor_scans(walk: Walk, step_t: np.ndarray, every_s: float) -> list[AnchorScan]:
+    """Return one of the walk's scans every ``every_s``, each at the raw step nearest in time.
 
     The k-th anchor is the first scan completed at least k·every_s after the
-    start (scans before the last step only). A device ends a segment where it
-    takes a scan, so each anchor observes a link end of its own.
+    start (scans before the last step only), with its readings heard within
+    2 s of the scan. A device ends a segment where it takes a scan, so each
+    anchor observes a link end of its own.
     """
-    readings = site.readings(walk)
-    scans = group_scans(readings.t, readings.tx, ScanParams())
-    out: list[WifiScan] = []
+    wifi = fresh_wifi(walk.wifi, MAX_WIFI_AGE_MS)
+    out: list[AnchorScan] = []
     target = step_t[0] + every_s * 1000.0
-    for idx in scans:
-        t_scan = float(readings.t[idx].max())
+    for t_scan in np.unique(wifi.t):
         if t_scan > step_t[-1]:
             break
         if t_scan < target:
             continue
         step = int(np.argmin(np.abs(step_t - t_scan)))
         if step > 0:
-            out.append(WifiScan(step, readings.tx[idx], readings.rssi[idx]))
+            row = wifi.t == t_scan
+            readings = zip(wifi.bssid[row].tolist(), wifi.rssi[row].tolist(), strict=True)
+            out.append(AnchorScan(step, [{"id": b, "rssi": float(r)} for b, r in readings]))
         target += every_s * 1000.0
     return out
 
 
-def track_vertices(raw: RawTrack, links: str, scans: list[WifiScan]) -> np.ndarray:
+def track_vertices(raw: RawTrack, links: str, scans: Sequence[AnchorScan]) -> np.ndarray:
     """Return the raw steps that end links: every step, or the merged track's corners, plus
     the step of every anchor scan (the device ends a segment where it scans)."""
     corners = np.arange(len(raw.xy)) if links == "step" else simplify(raw.xy, MERGE_TOLERANCE_M)
-    return np.union1d(corners, [s.point for s in scans]).astype(np.int64)
+    return np.union1d(corners, [s.step for s in scans]).astype(np.int64)
 
 
-def link_scans(scans: list[WifiScan], vertex: np.ndarray) -> list[WifiScan]:
-    """Return the anchor scans renumbered from raw steps to link ends (point k is ``vertex[k]``)."""
-    return [replace(s, point=int(np.searchsorted(vertex, s.point))) for s in scans]
+def track_body(
+    walk: Walk,
+    raw: RawTrack,
+    vertex: np.ndarray,
+    scans: Sequence[AnchorScan],
+    *,
+    heading_known: bool,
+) -> dict[str, Any]:
+    """Return the ``POST /v1/tracks`` body of a raw track cut at ``vertex``, with ``scans`` on
+    the links they end and the first link's heading when it is known."""
+    lengths, turns, direction = as_links(raw.xy[vertex])
+    wifi = {s.step: s.wifi for s in scans}
+    segments = [
+        {"t": int(raw.t[v]), "length": float(length), "turn": float(turn)}
+        | ({"wifi": wifi[int(v)]} if int(v) in wifi else {})
+        for v, length, turn in zip(vertex[1:], lengths, turns, strict=True)
+    ]
+    # engine direction (rad, CCW from +x) → API heading (degrees clockwise from +y, < 360)
+    heading = round((90.0 - math.degrees(float(direction[0]))) % 360.0, 6) % 360.0
+    return {
+        "device_id": f"saver-{walk.walk_id}",
+        "site_id": SITE_ID,
+        "floor_id": walk.floor,
+        "start": {"x": float(raw.xy[0, 0]), "y": float(raw.xy[0, 1])},
+        "t0": int(raw.t[0]),
+        "heading": heading if heading_known else None,
+        "segments": segments,
+    }
 
 
 @dataclass(frozen=True)
@@ -296,38 +330,33 @@ def search_params(hypotheses: str, base: TrackSearchParams) -> TrackSearchParams
     return base
 
 
+Fitter = Callable[[dict[str, Any]], dict[str, Any]]
+"""Fits one ``POST /v1/tracks`` body and returns the result the server stores."""
+
+
 def evaluate_walk(
-    walk: Walk,
-    plan: FloorPlan,
-    raw: RawTrack,
-    vertex: np.ndarray,
-    anchors: AnchorCosts | None,
-    params: TrackSearchParams,
+    walk: Walk, raw: RawTrack, vertex: np.ndarray, scans: Sequence[AnchorScan], fit: Fitter
 ) -> list[FitResult]:
     """Fit one raw track in every setting and return the errors at the waypoints."""
     wp = walk.waypoints
     t_eval = wp[1:, 0]
     truth, _ = truth_at(wp, t_eval)
     raw_err = np.linalg.norm(position_at(raw.t, raw.xy, t_eval) - truth, axis=1)
-    lengths, turns, direction = as_links(raw.xy[vertex])
-    times = raw.t[vertex] / 1000.0
     out = []
     for heading, anchored in SETTINGS:
-        t0 = time.perf_counter()
-        found = search_track(
-            plan,
-            raw.xy[0],
-            lengths,
-            turns,
-            heading=float(direction[0]) if heading == "known" else None,
-            times=times - times[0],
-            anchors=anchors if anchored else None,
-            params=params,
+        body = track_body(
+            walk, raw, vertex, scans if anchored else (), heading_known=heading == "known"
         )
+        t0 = time.perf_counter()
+        result = fit(body)
         seconds = time.perf_counter() - t0
-        fit = found.best.fit
-        pts = carry_steps(raw.xy, vertex, fit.points)
-        fitted, fit_t = (raw.xy, raw.t) if fit.failed else (pts, raw.t[: len(pts)])
+        failed = result.get("error") if result["status"] != "done" else None
+        if failed is None:
+            ends = np.array([[p["x"], p["y"]] for p in result["points"]])
+            pts = carry_steps(raw.xy, vertex, ends)
+            fitted, fit_t = pts, raw.t[: len(pts)]
+        else:
+            fitted, fit_t = raw.xy, raw.t
         err = np.linalg.norm(position_at(fit_t, fitted, t_eval) - truth, axis=1)
         out.append(
             FitResult(
@@ -335,18 +364,33 @@ def evaluate_walk(
                 walk.floor,
                 heading,
                 anchored,
-                int(lengths.size),
-                len(anchors) if anchored and anchors is not None else 0,
+                len(body["segments"]),
+                int(result.get("anchors", 0)),
                 raw_err,
                 err,
-                fit.failed,
+                failed or None,
                 seconds,
-                found.ambiguous,
-                found.best.scale,
-                found.best.drift,
+                bool(result.get("ambiguous", False)),
+                float(result.get("scale", 1.0)),
+                math.radians(float(result.get("drift", 0.0))),
             )
         )
     return out
+
+
+def server_fitter(database_url: str, settings: Settings, search: TrackSearchParams) -> Fitter:
+    """Return a fitter that makes each body's pool job as ``POST /v1/tracks`` does, on the
+    server's database (nothing is stored), and runs it as the pool runs it."""
+    sessions = make_sessionmaker(make_engine(database_url))
+
+    def fit(body: dict[str, Any]) -> dict[str, Any]:
+        with sessions() as db:
+            _, job = create_track(db=db, body=TrackCreate.model_validate(body))
+            db.rollback()
+        job |= {"cell": settings.raster_cell, "time_limit_s": search.fit.time_limit_s}
+        return run_fit(job, search)
+
+    return fit
 
 
 def format_summary(results: list[FitResult]) -> str:
@@ -402,40 +446,29 @@ def per_floor(results: list[FitResult]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Fit every held-out site1 walk in the four settings and print the errors."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--site", type=Path, default=data_dir() / "ilc" / "site1")
-    parser.add_argument("--test-fraction", type=float, default=0.2)
-    parser.add_argument(
-        "--split",
-        choices=("test", "validation"),
-        default="test",
-        help="held-out test walks, or a validation split carved from the training walks "
-        "(for tuning; never tune on test)",
+    """Fit every held-out site1 walk in the four settings on a server's build; print the errors."""
+    parser = argparse.ArgumentParser(
+        prog="locus eval trackfit", description=__doc__.splitlines()[0] if __doc__ else None
     )
-    parser.add_argument("--validation-fraction", type=float, default=0.2)
+    add_site_arguments(parser, "fit its walks instead of the test walks (for tuning)")
     parser.add_argument("--links", choices=("merged", "step"), default="merged")
     parser.add_argument("--scan-every", type=float, default=SCAN_EVERY_S)
     parser.add_argument("--hypotheses", choices=HYPOTHESES, default="full")
     parser.add_argument("--simulate", action="store_true", help="DR simulated from true paths")
-    parser.add_argument("--floors", nargs="*", default=None, help="only these floors")
     parser.add_argument("--limit", type=int, default=0, help="at most this many walks")
-    parser.add_argument("--time-limit", type=float, default=30.0)
-    parser.add_argument("--screen-weight", type=float, default=TrackSearchParams().screen_weight)
-    parser.add_argument(
-        "--ambiguity-margin", type=float, default=TrackSearchParams().ambiguity_margin
-    )
-    parser.add_argument("--scale-links", type=float, default=TrackSearchParams().scale_links)
-    parser.add_argument("--drift-seconds", type=float, default=TrackSearchParams().drift_seconds)
-    parser.add_argument(
-        "--anchor-weight", type=float, default=TrackSearchParams().fit.anchor_weight
-    )
-    parser.add_argument("--anchor-sigma", type=float, default=TrackSearchParams().fit.anchor_sigma)
-    parser.add_argument("--anchor-cap", type=float, default=TrackSearchParams().fit.anchor_cap)
+    settings = Settings()
+    base = TrackSearchParams()
+    parser.add_argument("--time-limit", type=float, default=settings.trackfit_time_limit_s)
+    parser.add_argument("--screen-weight", type=float, default=base.screen_weight)
+    parser.add_argument("--ambiguity-margin", type=float, default=base.ambiguity_margin)
+    parser.add_argument("--scale-links", type=float, default=base.scale_links)
+    parser.add_argument("--drift-seconds", type=float, default=base.drift_seconds)
+    parser.add_argument("--anchor-weight", type=float, default=base.fit.anchor_weight)
+    parser.add_argument("--anchor-sigma", type=float, default=base.fit.anchor_sigma)
+    parser.add_argument("--anchor-cap", type=float, default=base.fit.anchor_cap)
     parser.add_argument("--quiet", action="store_true", help="no per-walk lines")
     args = parser.parse_args(argv)
 
-    base = TrackSearchParams()
     fit = replace(
         base.fit,
         time_limit_s=args.time_limit,
@@ -443,7 +476,7 @@ def main(argv: list[str] | None = None) -> None:
         anchor_sigma=args.anchor_sigma,
         anchor_cap=args.anchor_cap,
     )
-    params = search_params(
+    search = search_params(
         args.hypotheses,
         replace(
             base,
@@ -454,65 +487,52 @@ def main(argv: list[str] | None = None) -> None:
             drift_seconds=args.drift_seconds,
         ),
     )
-    ids = [p.name.split(".")[0] for _, p in site_walks(args.site)]
-    train, validation, test = split_ids(ids, args.test_fraction, args.validation_fraction)
-    held = set(validation if args.split == "validation" else test)
-    site = read_site_recordings(args.site, train_ids=train)
-    maps: tuple[RadioMap, ...] = radio_maps(site, survey_of(site, train), RadioMapParams())
-    plans: dict[str, FloorPlan] = {}
-    refs: dict[int, ReferenceScans] = {}
-    walks = sorted(
-        (w for w in site.walks if w.walk_id in held and w.waypoints.shape[0] >= 2),
-        key=lambda w: w.walk_id,
-    )
-    if args.floors:
-        walks = [w for w in walks if w.floor in args.floors]
-    if args.limit:
-        walks = walks[: args.limit]
+    site_dir, floors, train, held = split_site(args)
+    walks = held[: args.limit] if args.limit else held
+    kind = "validation" if args.validation_fraction > 0 else "test"
     print(
-        f"site {args.site.name}: {len(walks)} {args.split} walks, "
+        f"site {site_dir.name}: {len(walks)} {kind} walks, "
         f"{'simulated' if args.simulate else 'PDR'} tracks, {args.links} links, hypotheses "
-        f"{args.hypotheses}, radio maps from {len(train)} training walks, one scan every "
-        f"{args.scan_every:g} s, raster {RASTER_CELL_M} m"
+        f"{args.hypotheses}, radio maps built by a server from {len(train)} training walks, "
+        f"one scan every {args.scan_every:g} s, raster {settings.raster_cell} m",
+        flush=True,
     )
+    changed = {
+        name: value
+        for name, value in asdict(replace(search, fit=replace(search.fit, time_limit_s=0))).items()
+        if value != asdict(replace(base, fit=replace(base.fit, time_limit_s=0)))[name]
+    }
+    if changed:
+        print(f"fitter constants overridden (not the server's): {changed}")
     results: list[FitResult] = []
-    for walk in walks:
-        if walk.floor not in plans:
-            fmap = parse_floor_map(read_floor(args.site / walk.floor).geojson)
-            plans[walk.floor] = floor_plan(fmap, cell=RASTER_CELL_M)
-        plan = plans[walk.floor]
-        wp = walk.waypoints
-        if args.simulate:
-            raw = simulated_track(wp, SimulatedErrors(), seed=int(walk.walk_id[-8:], 16))
-        else:
-            if walk.acc.shape[0] == 0:
+    with built_site(site_dir, floors, train, status=print) as (srv, _, build):
+        print(f"build chose: {build.get('tuning')}", flush=True)
+        fitter = server_fitter(srv.database_url, settings, search)
+        for walk in walks:
+            wp = walk.waypoints
+            if args.simulate:
+                raw = simulated_track(wp, SimulatedErrors(), seed=int(walk.walk_id[-8:], 16))
+            else:
+                if walk.acc.shape[0] == 0:
+                    continue
+                steps = detect_steps(imu_samples(walk))
+                raw = raw_track(wp[[0, -1], 0], steps.t, steps.length, steps.heading, wp[0, 1:])
+            if len(raw.xy) < 3:
                 continue
-            steps = detect_steps(imu_samples(walk))
-            raw = raw_track(wp[[0, -1], 0], steps.t, steps.length, steps.heading, wp[0, 1:])
-        if len(raw.xy) < 3:
-            continue
-        scans = anchor_scans(site, walk, raw.t.astype(float), args.scan_every)
-        vertex = track_vertices(raw, args.links, scans)
-        floor = site.floor_index(walk)
-        if floor not in refs:
-            refs[floor] = ReferenceScans.from_maps((maps[floor],), len(site.tx_ids))
-        anchors = (
-            wifi_anchor_costs(
-                maps[floor], refs[floor], link_scans(scans, vertex), params.fit.anchor_sigma
-            )
-            if scans
-            else None
-        )
-        found = evaluate_walk(walk, plan, raw, vertex, anchors, params)
-        results += found
-        if not args.quiet:
-            print(
-                f"{walk.walk_id:<26} {walk.floor:<3} links {found[0].n_links:>4} anchors "
-                f"{len(scans):>2} raw {found[0].raw.mean():>6.2f} fitted "
-                + " ".join(f"{r.fitted.mean():>6.2f}{'?' if r.ambiguous else ' '}" for r in found)
-                + f"  {max(r.seconds for r in found):.2f}s",
-                flush=True,
-            )
+            scans = anchor_scans(walk, raw.t.astype(float), args.scan_every)
+            vertex = track_vertices(raw, args.links, scans)
+            found = evaluate_walk(walk, raw, vertex, scans, fitter)
+            results += found
+            if not args.quiet:
+                print(
+                    f"{walk.walk_id:<26} {walk.floor:<3} links {found[0].n_links:>4} anchors "
+                    f"{len(scans):>2} raw {found[0].raw.mean():>6.2f} fitted "
+                    + " ".join(
+                        f"{r.fitted.mean():>6.2f}{'?' if r.ambiguous else ' '}" for r in found
+                    )
+                    + f"  {max(r.seconds for r in found):.2f}s",
+                    flush=True,
+                )
     print()
     print("errors (m) at the waypoints after the first; failed fits scored with the raw track;")
     print("ambig: fits whose runner-up (a distinct track) scored within the ambiguity margin;")

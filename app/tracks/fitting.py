@@ -13,7 +13,7 @@ import numpy as np
 
 from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap
-from app.engine.scan_knn import ReferenceScans
+from app.engine.scan_knn import ReferenceScans, ScanKnnParams
 from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
 from app.engine.trackfit.search import Candidate, TrackSearchParams, search_track
 from app.geometry.floormap import parse_floor_map
@@ -28,12 +28,17 @@ def _plan(site_id: str, floor_id: str, version: int, doc_json: str, cell: float)
 
 @lru_cache(maxsize=8)
 def _radio_map(
-    site_id: str, floor_id: str, version: int, data: bytes, transmitters: tuple[str, ...]
+    site_id: str,
+    floor_id: str,
+    version: int,
+    data: bytes,
+    transmitters: tuple[str, ...],
+    knn: ScanKnnParams,
 ) -> tuple[RadioMap, ReferenceScans | None, dict[str, int]]:
     """Decode a stored map with its columns numbered 0…, its survey scans prepared for
-    k-NN (None when the map keeps none) and the id → column lookup."""
+    the site's k-NN (None when the map keeps none) and the id → column lookup."""
     m = replace(decode_map(data), tx=np.arange(len(transmitters), dtype=np.int32))
-    refs = None if m.references is None else ReferenceScans.from_maps((m,), len(transmitters))
+    refs = None if m.references is None else ReferenceScans.from_maps((m,), len(transmitters), knn)
     return m, refs, {tx: i for i, tx in enumerate(transmitters)}
 
 
@@ -51,6 +56,7 @@ def _anchors(
         job["version"],
         stored["data"],
         tuple(stored["transmitters"]),
+        ScanKnnParams(**stored.get("knn", {})),
     )
     if refs is None:
         return None
@@ -85,14 +91,18 @@ def _points(times: list[int], xy: np.ndarray) -> list[dict[str, Any]]:
     ]
 
 
-def run_fit(job: dict[str, Any]) -> dict[str, Any]:
-    """Fit one track; return status, points, score, what the fit knows, time (never raises)."""
+def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dict[str, Any]:
+    """Fit one track; return status, points, score, what the fit knows, time (never raises).
+
+    ``search`` replaces the fitter's default constants (an evaluation studying
+    them); the request's own overrides and the job's time limit apply on top.
+    """
     started = time.perf_counter()
     try:
         plan = _plan(job["site_id"], job["floor_id"], job["version"], job["floor_doc"], job["cell"])
         request = job["request"]
         segments = request["segments"]
-        defaults = TrackSearchParams()
+        defaults = search or TrackSearchParams()
         params = replace(
             defaults,
             fit=replace(

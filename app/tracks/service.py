@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import uuid
+from dataclasses import asdict
 from typing import Any
 
 import shapely
@@ -13,6 +14,7 @@ from app.core.errors import Invalid, NotFound
 from app.floors.service import require_floor
 from app.geometry.floormap import parse_floor_map
 from app.radiomaps.models import RadioMapFloor
+from app.sites.assembly import site_tuning
 from app.sites.service import require_site
 from app.tracks.models import Track
 from app.tracks.schemas import TrackCreate
@@ -51,13 +53,15 @@ def create_track(*, db: Session, body: TrackCreate) -> tuple[Track, dict[str, An
 
 
 def _radio_map(*, db: Session, body: TrackCreate) -> dict[str, Any] | None:
-    """Return the floor's stored radio map (npz bytes and column ids) when the track has scans."""
+    """Return the floor's stored radio map (npz bytes, column ids and the per-scan k-NN's
+    constants the site's build chose) when the track has scans."""
     if not any(s.wifi for s in body.segments):
         return None
     row = db.get(RadioMapFloor, (body.site_id, body.floor_id))
     if row is None:
         return None
-    return {"data": row.data, "transmitters": list(row.transmitters)}
+    knn = site_tuning(db, body.site_id).scan_knn()
+    return {"data": row.data, "transmitters": list(row.transmitters), "knn": asdict(knn)}
 
 
 def get_track(*, db: Session, track_id: str) -> Track:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 import uuid
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -23,16 +24,20 @@ from app.engine.samples import Estimate
 from app.engine.scan_knn import LEVEL_POWERS
 from app.engine.scan_knn_cv import FLOOR_CANDIDATES_DBM
 from app.engine.smoothing import SmootherParams
+from app.engine.trackfit.search import TrackSearchParams
 from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES, WALK_NOISE_CANDIDATES
 from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
 from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.score import estimates_from_positions
 from app.evaluation.metrics import truth_at
-from app.evaluation.trackfit_eval import as_links, raw_track, simplify
+from app.evaluation.trackfit_eval import as_links, raw_track, server_fitter, simplify
 from app.importers.ilc import survey_body, walk_samples
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.replay import batches_by_time
+from app.sites.assembly import site_tuning
 from app.sites.models import Site
+from app.tracks.schemas import TrackCreate
+from app.tracks.service import create_track
 from tests.conftest import ADMIN_KEY, make_key
 
 SITE1 = data_dir() / "ilc" / "site1"
@@ -502,7 +507,7 @@ def _track_with_scans(walk: Walk, site_id: str, every_ms: int) -> dict[str, Any]
 
 @needs_site1
 def test_a_tracks_wifi_scans_are_scored_against_the_sites_radio_map(
-    client: TestClient, built_site: dict[str, Any], walks: list[Path]
+    client: TestClient, built_site: dict[str, Any], walks: list[Path], settings: Settings
 ) -> None:
     sid, admin = built_site["site_id"], make_admin()
     body = _track_with_scans(read_walk(walks[N_SURVEYS], FLOOR), sid, every_ms=20_000)
@@ -521,4 +526,15 @@ def test_a_tracks_wifi_scans_are_scored_against_the_sites_radio_map(
     assert result["status"] == "done", result
     # every scan reached the fit as an anchor on the floor's radio map
     assert result["anchors"] == scanned
+    # and its scans are matched with the per-scan k-NN's constants the site's build chose
+    with client.app.state.locus.sessions() as db:
+        _, job = create_track(db=db, body=TrackCreate.model_validate(body))
+        db.rollback()
+        assert job["radiomap"]["knn"] == asdict(site_tuning(db, sid).scan_knn())
+        stored = built_site["summary"]["tuning"]
+        assert job["radiomap"]["knn"]["floor_dbm"] == stored["scan_knn_floor_dbm"]
+    # the track-fit evaluation's fitter is the server's: the same points for the same body
+    fitter = server_fitter(settings.resolved_database_url, settings, TrackSearchParams())
+    again = fitter(body)
+    assert again["points"] == result["points"] and again["anchors"] == result["anchors"]
     assert len(result["points"]) == len(body["segments"]) + 1
