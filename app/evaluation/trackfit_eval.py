@@ -538,6 +538,9 @@ def main(argv: list[str] | None = None) -> None:
     print("ambig: fits whose runner-up (a distinct track) scored within the ambiguity margin;")
     print("sure mean / sure raw: fitted / raw mean error of the fits not flagged ambiguous")
     print(format_summary(results))
+    for r in results:
+        if r.failed:
+            print(f"failed: {r.walk_id} ({r.heading} heading, anchors {r.anchored}): {r.failed}")
     print()
     print("fitted / raw mean (m) per floor")
     print(per_floor(results))
