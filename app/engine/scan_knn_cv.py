@@ -137,11 +137,12 @@ def choose_neighbours(
     candidate nearest the default that is as good as the best walk by walk.
 
     The build of ILC site1's 457 training walks (five folds, every other
-    scan, readings up to 8 s old) kept level power 0 (5.987 m at 1, 6.028 m
-    at 2; a two-floor, half-survey subset took 2), measured 5.978 m at the
-    defaults (k 10, power 4), 5.915 m at power 6 and 5.894 m at 8, then 5.94,
-    5.913 and 5.931 m at k 5, 15 and 20, and took power 8 and k 10: a steeper
-    power trusts the best match more where the survey is dense.
+    scan, readings up to 8 s old) took a signal floor of -85 dBm (5.978 m at
+    -100, 5.824 m at -85, 5.985 m at -80), kept the penalty of 50 dB (5.995 m
+    at 25, 5.83 m at 100) and level power 0 (5.907 m at 1, 6.044 m at 2), took
+    power 6 (5.767 m; 5.756 m at 8) and kept k 10; a two-floor, half-survey
+    subset took -80 dBm and 100 dB (8.941 m against 10.289 m at -100 dBm, 8.66
+    m at 100 dB): the distance that fits one building does not fit another.
     """
     base = ScanKnnParams()
     default_pair = [(base.k, base.weight_power)]

@@ -350,7 +350,7 @@ def evaluate_walk(
         t0 = time.perf_counter()
         result = fit(body)
         seconds = time.perf_counter() - t0
-        failed = result.get("error") if result["status"] != "done" else None
+        failed = (result.get("error") or "failed") if result["status"] != "done" else None
         if failed is None:
             ends = np.array([[p["x"], p["y"]] for p in result["points"]])
             pts = carry_steps(raw.xy, vertex, ends)
@@ -368,7 +368,7 @@ def evaluate_walk(
                 int(result.get("anchors", 0)),
                 raw_err,
                 err,
-                failed or None,
+                failed,
                 seconds,
                 bool(result.get("ambiguous", False)),
                 float(result.get("scale", 1.0)),
