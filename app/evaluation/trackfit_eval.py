@@ -497,10 +497,15 @@ def main(argv: list[str] | None = None) -> None:
         f"one scan every {args.scan_every:g} s, raster {settings.raster_cell} m",
         flush=True,
     )
+    default_search, default_fit = asdict(base), asdict(base.fit)
     changed = {
         name: value
-        for name, value in asdict(replace(search, fit=replace(search.fit, time_limit_s=0))).items()
-        if value != asdict(replace(base, fit=replace(base.fit, time_limit_s=0)))[name]
+        for name, value in asdict(search).items()
+        if name != "fit" and value != default_search[name]
+    } | {
+        f"fit.{name}": value
+        for name, value in asdict(search.fit).items()
+        if name != "time_limit_s" and value != default_fit[name]
     }
     if changed:
         print(f"fitter constants overridden (not the server's): {changed}")
