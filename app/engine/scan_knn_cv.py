@@ -40,6 +40,9 @@ PENALTY_CANDIDATES = (25.0, 50.0, 100.0)
 """Distances (dB) for two scans sharing nothing (``ScanKnnParams.unshared_penalty``) a
 build tries."""
 
+PairErrors = dict[tuple[int, float], dict[int, float]]
+"""Each walk's mean held-out error (m) by (k, weight power)."""
+
 
 def _held_out(
     survey: Survey, n_tx: int, folds: int, every: int, params: ScanKnnParams
@@ -149,9 +152,9 @@ def choose_neighbours(
     pairs = [(base.k, p) for p in POWER_CANDIDATES] + [
         (k, p) for k in K_CANDIDATES if k != base.k for p in POWER_CANDIDATES
     ]
-    passes: dict[ScanKnnParams, dict[tuple[int, float], dict[int, float]]] = {}
+    passes: dict[ScanKnnParams, PairErrors] = {}
 
-    def scored(params: ScanKnnParams, wanted: list[tuple[int, float]]) -> dict:
+    def scored(params: ScanKnnParams, wanted: list[tuple[int, float]]) -> PairErrors:
         # every (k, power) pair from one pass of distances: the distances are the cost
         known = passes.get(params, {})
         if not all(pair in known for pair in wanted):
