@@ -50,6 +50,7 @@ from app.engine.smoothing import SmootherParams
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
     FIX_WEIGHT_CANDIDATES,
+    FLOOR_WEIGHT_CANDIDATES,
     HMM_WEIGHT_CANDIDATES,
     SMOOTHER_FIX_SCALE_CANDIDATES,
     WALK_NOISE_CANDIDATES,
@@ -348,10 +349,10 @@ def compute_build(
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     chosen = replays.choose()
-    tuning = replace(
-        _with_knn(tune_site(measured, validation, chosen[0] if chosen else None), knn, spread),
-        wifi_max_age_ms=max_age,
+    tuned = tune_site(
+        measured, validation, chosen[0] if chosen else None, replays.choose_floor_weight()
     )
+    tuning = replace(_with_knn(tuned, knn, spread), wifi_max_age_ms=max_age)
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1], walk_noise_m2_per_s=chosen[2])
     radius = replays.radius_calibration(_replayed_key(tuning))
@@ -469,10 +470,11 @@ class HmmReplays:
     the replays also calibrate the radius. The candidates step away from the
     defaults one constant at a time (a fold's maps are too large to keep for
     a second round): every emission weight, every k-NN fix weight and every
-    transition noise, each with the other two at their defaults, all with the
-    default floor weight (the per-scan floor scores choose the site's). Where
-    more than one constant would move, only the move whose replays erred
-    least is taken, so the chosen candidate was always replayed.
+    transition noise, each with the other two at their defaults. Where more
+    than one constant would move, only the move whose replays erred least is
+    taken, so the chosen candidate was always replayed. The floor weight is
+    replayed the same way, the others at their defaults, and chosen on its
+    own: it weighs floors against each other, which the other three do not.
     """
 
     def __init__(
@@ -515,6 +517,12 @@ class HmmReplays:
             for w, f, q in self.keys
         ]
         self.results: dict[HmmKey, list[WalkResult]] = {k: [] for k in self.keys}
+        # the floor weight moves alone: a floor's evidence does not depend on the others
+        at_default = self.candidates[self.keys.index(self.default)]
+        self.default_floor_weight = at_default.floor_weight
+        self.floor_weights = [w for w in FLOOR_WEIGHT_CANDIDATES if w != at_default.floor_weight]
+        self.floor_candidates = [replace(at_default, floor_weight=w) for w in self.floor_weights]
+        self.floor_results: dict[float, list[WalkResult]] = {w: [] for w in self.floor_weights}
 
     def _moved(self, axis: int, value: float) -> HmmKey:
         """Return the defaults with one constant (``axis`` of ``HMM_REPLAYED``) set to
@@ -531,9 +539,13 @@ class HmmReplays:
         if len(held) > self.per_fold:
             held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
         walks = [self.walks[w] for w in held]
-        replayed = candidate_results(maps, walks, self.candidates, self.pdr, self.plans)
-        for key, new in zip(self.keys, replayed, strict=True):
+        replayed = candidate_results(
+            maps, walks, self.candidates + self.floor_candidates, self.pdr, self.plans
+        )
+        for key, new in zip(self.keys, replayed[: len(self.keys)], strict=True):
             self.results[key] += new
+        for weight, new in zip(self.floor_weights, replayed[len(self.keys) :], strict=True):
+            self.floor_results[weight] += new
 
     @property
     def scored(self) -> int:
@@ -554,10 +566,24 @@ class HmmReplays:
         at their defaults; empty when none was replayed."""
         if not self.scored:
             return {}
-        return {
+        errors = {
             name: {v: float(np.mean(s)) for v, s in self._scores(axis).items()}
             for axis, name in enumerate(HMM_REPLAYED)
         }
+        errors["floor_weight"] = {w: float(np.mean(s)) for w, s in self.floor_scores().items()}
+        return errors
+
+    def floor_scores(self) -> dict[float, list[float]]:
+        """Return each walk's score per floor weight, the other constants at their defaults."""
+        default = [r.score for r in self.results.get(self.default, [])]
+        moved = {w: [r.score for r in results] for w, results in self.floor_results.items()}
+        return {self.default_floor_weight: default} | moved
+
+    def choose_floor_weight(self) -> float | None:
+        """Return the floor weight the one-standard-error rule takes; None without replays."""
+        if not self.scored:
+            return None
+        return one_standard_error_choice(self.floor_scores(), self.default_floor_weight)
 
     def choose(self) -> HmmKey | None:
         """Return the candidate chosen one constant at a time (``one_move_choice``); None
@@ -634,6 +660,7 @@ def _tuning_scores(
         "hmm_walk_error_m_by_weight": by_value("emission_weight"),
         "hmm_walk_error_m_by_fix_weight": by_value("fix_nats"),
         "hmm_walk_error_m_by_walk_noise": by_value("walk_noise_m2_per_s"),
+        "hmm_walk_error_m_by_floor_weight": by_value("floor_weight"),
         "fixed_lag_walk_error_m_by_fix_scale": by_scale("fixed_lag"),
         "full_pass_walk_error_m_by_fix_scale": by_scale("full_pass"),
         "hmm_walks": replays.scored,

@@ -25,7 +25,11 @@ from app.engine.scan_knn import LEVEL_POWERS
 from app.engine.scan_knn_cv import FLOOR_CANDIDATES_DBM
 from app.engine.smoothing import SmootherParams
 from app.engine.trackfit.search import TrackSearchParams
-from app.engine.tuning import SMOOTHER_FIX_SCALE_CANDIDATES, WALK_NOISE_CANDIDATES
+from app.engine.tuning import (
+    FLOOR_WEIGHT_CANDIDATES,
+    SMOOTHER_FIX_SCALE_CANDIDATES,
+    WALK_NOISE_CANDIDATES,
+)
 from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
 from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
 from app.evaluation.ilc.score import estimates_from_positions
@@ -389,9 +393,12 @@ def test_the_build_chooses_the_sites_constants_from_its_surveys(
     by_w = {float(w): v for w, v in scores["hmm_walk_error_m_by_weight"].items()}
     default = HmmParams().emission_weight
     assert by_w[tuning["emission_weight"]] <= by_w[default]
-    # the floor weight is the one whose per-scan floor posteriors scored best
-    by_floor = {float(w): v for w, v in scores["floor_log_score_by_weight"].items()}
-    assert by_floor[tuning["floor_weight"]] == max(by_floor.values())
+    # the floor weight is replayed too, on the same walks, wrong floors counted as errors:
+    # the default unless another erred less
+    by_floor = {float(w): v for w, v in scores["hmm_walk_error_m_by_floor_weight"].items()}
+    assert set(by_floor) == set(FLOOR_WEIGHT_CANDIDATES)
+    assert by_floor[tuning["floor_weight"]] <= by_floor[HmmParams().floor_weight]
+    assert by_floor[HmmParams().floor_weight] == by_w[default]
     # so do the k-NN fix's weight and the transition noise: at most one of the three
     # replayed constants leaves its default, and only for a candidate that erred less
     replayed = {
