@@ -44,12 +44,13 @@ EMISSION_WEIGHT_CANDIDATES = (0.02, 0.03, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0
 HMM_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.35)
 """Emission weights a build replays held-out walks with."""
 
-FLOOR_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.4, 0.8)
-"""Floor evidence weights (``HmmParams.floor_weight``) a build replays held-out walks with.
-Per-scan floor scores alone choose too small a weight where floors sound alike: each scan
-is then rightly unsure, but a walk that starts on the wrong floor stays there. On the
-two-floor, half-survey subset of site1 (51 validation walks) the HMM put 8.80% of its
-positions on a wrong floor at the per-scan choice (0.05), 5.58% at 0.2 and 4.44% at 0.4."""
+FLOOR_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
+"""Floor evidence weights (``HmmParams.floor_weight``) a build replays held-out walks, joined
+in pairs across floors, with (``app.engine.hmm.floor_validate``). Per-scan floor scores
+chose 0.05 on the two-floor, half-survey subset of site1, where the HMM then put 8.80% of
+its positions on a wrong floor on 51 validation walks (4.44% at 0.4); on site1's 147
+validation walks joined across floors a change of floor was followed within 5.5 s at 0.2
+and 2.0 s at 0.8 (p90)."""
 
 FIX_WEIGHT_CANDIDATES = (0.0, 10.0, 20.0)
 """Weights of the per-scan k-NN fix in the HMM's emission a build replays held-out walks

@@ -115,7 +115,8 @@ class TuningScores(BaseModel):
     hmm_walk_error_m_by_weight: dict[str, float | None] = {}
     hmm_walk_error_m_by_fix_weight: dict[str, float | None] = {}
     hmm_walk_error_m_by_walk_noise: dict[str, float | None] = {}
-    hmm_walk_error_m_by_floor_weight: dict[str, float | None] = {}
+    wrong_floor_share_by_floor_weight: dict[str, float | None] = {}
+    floor_pairs: int = 0
     fixed_lag_walk_error_m_by_fix_scale: dict[str, float | None] = {}
     full_pass_walk_error_m_by_fix_scale: dict[str, float | None] = {}
     hmm_walks: int = 0

@@ -24,6 +24,8 @@ from app.core.db import session_scope
 from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
+from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.floor_validate import FloorWalk, floor_pair_scores
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.validate import (
     HeldWalk,
@@ -327,13 +329,14 @@ def compute_build(
     fits = sorted(wifi_fits + beacon_fits, key=lambda f: f.tx)
     report(0.65)
     measured = _measured_walks(inputs)
-    replays = HmmReplays(
-        inputs,
-        tx_ids,
-        _with_knn(tune_site(measured, None), knn, spread),
-        hmm_walks if tune else 0,
-        plans,
-    )
+    base = _with_knn(tune_site(measured, None), knn, spread)
+    replays = HmmReplays(inputs, tx_ids, base, hmm_walks if tune else 0, plans)
+    floor_replays = FloorReplays(inputs, tx_ids, base.hmm() if tune else None)
+
+    def fold_hook(maps: tuple[RadioMap, ...], test: np.ndarray) -> None:
+        replays.on_fold(maps, test, survey.scan_walk)
+        floor_replays.on_fold(maps, test, survey.scan_walk)
+
     validation = cross_validate(
         survey,
         plans,
@@ -343,15 +346,11 @@ def compute_build(
         ks=WKNN_K_CANDIDATES,
         emission=HmmParams(references=knn),
         weights=EMISSION_WEIGHT_CANDIDATES,
-        fold_hook=(lambda maps, test: replays.on_fold(maps, test, survey.scan_walk))
-        if replays.walks
-        else None,
+        fold_hook=fold_hook if replays.walks or floor_replays.walks else None,
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     chosen = replays.choose()
-    tuned = tune_site(
-        measured, validation, chosen[0] if chosen else None, replays.choose_floor_weight()
-    )
+    tuned = tune_site(measured, validation, chosen[0] if chosen else None, floor_replays.choose())
     tuning = replace(_with_knn(tuned, knn, spread), wifi_max_age_ms=max_age)
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1], walk_noise_m2_per_s=chosen[2])
@@ -405,7 +404,9 @@ def compute_build(
         tx_ids,
         accuracy,
         tuning,
-        _tuning_scores(validation, replays, smoothers, age_scores, knn_scores),
+        _tuning_scores(
+            validation, replays, floor_replays.scores, smoothers, age_scores, knn_scores
+        ),
     )
     report(1.0)
     return BuildResult(
@@ -472,9 +473,7 @@ class HmmReplays:
     a second round): every emission weight, every k-NN fix weight and every
     transition noise, each with the other two at their defaults. Where more
     than one constant would move, only the move whose replays erred least is
-    taken, so the chosen candidate was always replayed. The floor weight is
-    replayed the same way, the others at their defaults, and chosen on its
-    own: it weighs floors against each other, which the other three do not.
+    taken, so the chosen candidate was always replayed.
     """
 
     def __init__(
@@ -517,12 +516,6 @@ class HmmReplays:
             for w, f, q in self.keys
         ]
         self.results: dict[HmmKey, list[WalkResult]] = {k: [] for k in self.keys}
-        # the floor weight moves alone: a floor's evidence does not depend on the others
-        at_default = self.candidates[self.keys.index(self.default)]
-        self.default_floor_weight = at_default.floor_weight
-        self.floor_weights = [w for w in FLOOR_WEIGHT_CANDIDATES if w != at_default.floor_weight]
-        self.floor_candidates = [replace(at_default, floor_weight=w) for w in self.floor_weights]
-        self.floor_results: dict[float, list[WalkResult]] = {w: [] for w in self.floor_weights}
 
     def _moved(self, axis: int, value: float) -> HmmKey:
         """Return the defaults with one constant (``axis`` of ``HMM_REPLAYED``) set to
@@ -539,13 +532,9 @@ class HmmReplays:
         if len(held) > self.per_fold:
             held = [held[i] for i in np.linspace(0, len(held) - 1, self.per_fold).astype(int)]
         walks = [self.walks[w] for w in held]
-        replayed = candidate_results(
-            maps, walks, self.candidates + self.floor_candidates, self.pdr, self.plans
-        )
-        for key, new in zip(self.keys, replayed[: len(self.keys)], strict=True):
+        replayed = candidate_results(maps, walks, self.candidates, self.pdr, self.plans)
+        for key, new in zip(self.keys, replayed, strict=True):
             self.results[key] += new
-        for weight, new in zip(self.floor_weights, replayed[len(self.keys) :], strict=True):
-            self.floor_results[weight] += new
 
     @property
     def scored(self) -> int:
@@ -566,24 +555,10 @@ class HmmReplays:
         at their defaults; empty when none was replayed."""
         if not self.scored:
             return {}
-        errors = {
+        return {
             name: {v: float(np.mean(s)) for v, s in self._scores(axis).items()}
             for axis, name in enumerate(HMM_REPLAYED)
         }
-        errors["floor_weight"] = {w: float(np.mean(s)) for w, s in self.floor_scores().items()}
-        return errors
-
-    def floor_scores(self) -> dict[float, list[float]]:
-        """Return each walk's score per floor weight, the other constants at their defaults."""
-        default = [r.score for r in self.results.get(self.default, [])]
-        moved = {w: [r.score for r in results] for w, results in self.floor_results.items()}
-        return {self.default_floor_weight: default} | moved
-
-    def choose_floor_weight(self) -> float | None:
-        """Return the floor weight the one-standard-error rule takes; None without replays."""
-        if not self.scored:
-            return None
-        return one_standard_error_choice(self.floor_scores(), self.default_floor_weight)
 
     def choose(self) -> HmmKey | None:
         """Return the candidate chosen one constant at a time (``one_move_choice``); None
@@ -623,6 +598,46 @@ class HmmReplays:
         return calibrate_radius(error, radius, HmmParams().min_accuracy_m)
 
 
+class FloorReplays:
+    """Held-out survey walks joined across floors, their floor followed under each floor
+    weight on each fold's maps (``app.engine.hmm.floor_validate``); every walk with WiFi
+    is replayed. Without ``params`` (no tuning) nothing is."""
+
+    def __init__(
+        self, inputs: BuildInputs, tx_ids: tuple[str, ...], params: HmmParams | None
+    ) -> None:
+        index = {tx: i for i, tx in enumerate(tx_ids)}
+        self.params = params or HmmParams()
+        self.walks: dict[int, FloorWalk] = {}
+        if params is not None:
+            for w, s in enumerate(inputs.surveys):
+                if s.t.size:
+                    rssi = RssiReadings(s.t, np.array([index[i] for i in s.ids], np.int32), s.rssi)
+                    self.walks[w] = FloorWalk(rssi, inputs.site.floor_index[s.floor_id])
+        self.scores: dict[float, list[float]] = {w: [] for w in FLOOR_WEIGHT_CANDIDATES}
+
+    def on_fold(
+        self, maps: tuple[RadioMap, ...], test: np.ndarray, walk_of_scan: np.ndarray
+    ) -> None:
+        """Replay the fold's held-out walks, joined in pairs across floors, on its maps."""
+        held = [w for w in np.unique(walk_of_scan[test]).tolist() if w in self.walks]
+        if not held:
+            return
+        model = EmissionModel(maps, self.params)
+        walks = [self.walks[w] for w in held]
+        for weight, pairs in floor_pair_scores(
+            model, walks, FLOOR_WEIGHT_CANDIDATES, self.params
+        ).items():
+            self.scores[weight] += pairs
+
+    def choose(self) -> float | None:
+        """Return the floor weight the one-standard-error rule takes over the pairs' shares
+        of scans on a wrong floor; None without pairs."""
+        if not all(self.scores.values()):
+            return None
+        return one_standard_error_choice(self.scores, self.params.floor_weight)
+
+
 def _replayed_key(tuning: SiteTuning) -> HmmKey:
     """Return the replay candidate a tuning's HMM constants are."""
     return (tuning.emission_weight, tuning.fix_nats, tuning.walk_noise_m2_per_s)
@@ -641,6 +656,7 @@ def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
 def _tuning_scores(
     validation: CrossValidation | None,
     replays: HmmReplays,
+    floor_scores: dict[float, list[float]],
     smoothers: dict[str, dict[float, list[float]]],
     age_scores: dict[float, list[float]],
     knn_scores: dict[str, dict[float, list[float]]],
@@ -660,7 +676,10 @@ def _tuning_scores(
         "hmm_walk_error_m_by_weight": by_value("emission_weight"),
         "hmm_walk_error_m_by_fix_weight": by_value("fix_nats"),
         "hmm_walk_error_m_by_walk_noise": by_value("walk_noise_m2_per_s"),
-        "hmm_walk_error_m_by_floor_weight": by_value("floor_weight"),
+        "wrong_floor_share_by_floor_weight": {
+            str(w): _r(float(np.mean(v)), 4) for w, v in floor_scores.items() if v
+        },
+        "floor_pairs": min((len(v) for v in floor_scores.values()), default=0),
         "fixed_lag_walk_error_m_by_fix_scale": by_scale("fixed_lag"),
         "full_pass_walk_error_m_by_fix_scale": by_scale("full_pass"),
         "hmm_walks": replays.scored,

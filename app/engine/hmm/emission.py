@@ -209,6 +209,22 @@ class EmissionModel:
         """
         return self._scan_evidence(tx, rssi)[1]
 
+    def floor_log_marginals_by_weight(
+        self, tx: np.ndarray, rssi: np.ndarray, weights: Sequence[float]
+    ) -> np.ndarray:
+        """Return each floor's evidence for a scan under each floor weight, (W, F).
+
+        What ``floor_log_marginals`` returns with ``floor_weight`` set to each
+        of ``weights``, from one computation of the scan's likelihoods.
+        """
+        lls, _ = self._scan_evidence(tx, rssi)
+        rescale = np.asarray(weights, dtype=float)[:, None] / self.params.emission_weight
+        own = [v[:n] for v, n in zip(lls, self.surveyed_points, strict=True)]
+        return np.stack(
+            [logsumexp(rescale * v[None, :], axis=1) - np.log(max(v.size, 1)) for v in own],
+            axis=1,
+        )
+
     def _scan_evidence(
         self, tx: np.ndarray, rssi: np.ndarray
     ) -> tuple[list[np.ndarray], np.ndarray]:

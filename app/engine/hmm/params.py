@@ -55,10 +55,14 @@ class HmmParams:
         Points extend this far (m) from the survey scans onto the walkable
         plan, each scored as the survey scans nearest it, so a walker the
         survey never passed can be followed there; 0 keeps the radio map's
-        points (within its 3 m). On site1's validation walks (147 walks, maps
-        from the other 310) the live mean went from 7.29 m at 0 to 6.91 m at
-        8 m and at 12 m (6.93 m at 20 m), the full-pass mean from 5.68 m to
-        5.43 m.
+        points (within its 3 m). Far enough to cover the walkable plan of a
+        surveyed building, so that how far held-out walkers stray from the
+        survey is no constant of the site: on site1's validation walks (147
+        walks, maps from the other 310) the live mean went from 5.71 m at 10
+        m to 5.45 m at 20 m (the same at 30 m), the full-pass mean from 4.68
+        m to 4.62 m, at the same cost per update; on the two-floor,
+        half-survey subset (51 walks) from 7.99 m to 7.88 m (the same at 30
+        and 40 m). An earlier tracker went from 7.29 m at 0 to 6.91 m at 8 m.
     reach_scans : int
         A point with no survey scan within ``knn_radius_m`` pools this many of
         its nearest scans (6: 6.94 m, 16: 6.91 m, 40: 6.93 m live).
@@ -192,7 +196,7 @@ class HmmParams:
     knn_pool_m: float = 1.5
     knn_radius_m: float = 3.0
     knn_pool_db: float = 3.0
-    reach_m: float = 10.0
+    reach_m: float = 20.0
     reach_scans: int = 16
     knn_max_db: float = 30.0
     fix_nats: float = 10.0

@@ -9,6 +9,7 @@ import numpy as np
 
 from app.engine.gaussian import R68_SIGMAS_2D
 from app.engine.hmm.emission import EmissionModel
+from app.engine.hmm.floor_filter import floor_belief, log_sum_exp, tracked_floor
 from app.engine.hmm.kernels import propagate
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.transition import step_displacement, transition_kernel
@@ -19,14 +20,6 @@ from app.engine.wknn import unique_readings
 
 _PDR_KEYS = tuple(Pdr().snapshot())
 """Keys of a PDR snapshot; those holding None are left out of the HMM's snapshot."""
-
-
-def _logsumexp(x: np.ndarray) -> float:
-    """Return ln Σ exp(x) (-inf when every x is): scipy's costs ten times as much a call."""
-    top = float(np.max(x))
-    if not np.isfinite(top):
-        return top
-    return top + float(np.log(np.sum(np.exp(x - top))))
 
 
 class HmmTracker:
@@ -278,17 +271,9 @@ class HmmTracker:
         rssi = rssi - self.rssi_offset
         ll = model.log_likelihoods(tx, rssi)
         marginal = model.floor_log_marginals(tx, rssi)
-        n = marginal.size
-        stay = np.exp(self.floor_logp)
-        eps = p.floor_switch_prob
-        # π_f = (1 - ε) b_f + ε (1 - b_f) / (n - 1)
-        prior = (1.0 - eps) * stay + (eps * (1.0 - stay) / (n - 1) if n > 1 else 0.0)
-        logp = np.log(np.maximum(prior, 1e-300)) + marginal
-        self.floor_logp = logp - _logsumexp(logp)
-        best = int(np.argmax(self.floor_logp))
-        if self.map < 0 or (
-            best != self.map and np.exp(self.floor_logp[best]) >= p.floor_switch_posterior
-        ):
+        self.floor_logp = floor_belief(self.floor_logp, marginal, p.floor_switch_prob)
+        best = tracked_floor(self.map, self.floor_logp, p.floor_switch_posterior)
+        if best != self.map:
             self._start(best, tx, rssi, ll[best])
         else:
             self._update(t, ll[self.map], tx, rssi)
@@ -387,7 +372,7 @@ class HmmTracker:
         if fix is not None:
             ll_support = ll_support + fix
         log_post = np.log(prior[support]) + ll_support
-        predictive = _logsumexp(log_post) if support.size else -np.inf
+        predictive = log_sum_exp(log_post) if support.size else -np.inf
         if predictive < ll.max() - p.relocate_margin:
             self._start(self.map, tx, rssi, ll)
             return
