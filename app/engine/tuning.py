@@ -299,7 +299,8 @@ def tune_site(
     """Choose a site's constants from its measured survey walks and cross-validation.
 
     ``hmm_weight`` and ``floor_weight`` (chosen by replaying held-out walks
-    through the HMM) set the emission and floor weights where given; the
+    through the HMM, and through its floor filter joined across floors) set
+    the emission and floor weights where given; the
     per-scan scores of ``held`` choose them otherwise. The two are chosen
     apart: tied to the emission weight, the floor weight followed it down
     where the replays wanted the steps trusted more (on site1's validation

@@ -334,7 +334,8 @@ def compute_build(
     floor_replays = FloorReplays(inputs, tx_ids, base.hmm() if tune else None)
 
     def fold_hook(maps: tuple[RadioMap, ...], test: np.ndarray) -> None:
-        replays.on_fold(maps, test, survey.scan_walk)
+        if replays.walks:
+            replays.on_fold(maps, test, survey.scan_walk)
         floor_replays.on_fold(maps, test, survey.scan_walk)
 
     validation = cross_validate(
