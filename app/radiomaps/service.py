@@ -98,6 +98,11 @@ class SurveyInput:
     """How long before its scan's time each WiFi reading was last heard (ms; 0 unless the
     reading carries ``last_seen``)."""
 
+    def wifi(self, index: Mapping[str, int]) -> RssiReadings:
+        """Return the WiFi readings with each transmitter as its number in ``index``."""
+        tx = np.array([index[i] for i in self.ids], dtype=np.int32)
+        return RssiReadings(self.t, tx, self.rssi)
+
     def heard_within(self, max_age_ms: int) -> SurveyInput:
         """Return the survey with only the WiFi readings last heard within ``max_age_ms``."""
         keep = self.age <= max_age_ms
@@ -203,10 +208,7 @@ def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...
     window = CALIBRATION.ble_window_ms
     for walk, s in enumerate(inputs.surveys):
         floor = site.floor_index[s.floor_id]
-        tx = np.array([index[i] for i in s.ids], dtype=np.int32)
-        wifi.append(
-            locate_scans(RssiReadings(s.t, tx, s.rssi), s.waypoints, floor=floor, walk=walk)
-        )
+        wifi.append(locate_scans(s.wifi(index), s.waypoints, floor=floor, walk=walk))
         t, ids, rssi = s.ble
         if t.size:
             # every advertisement of a window timed at the window's middle: one scan
@@ -491,9 +493,8 @@ class HmmReplays:
         if per_fold > 0:
             for w, s in enumerate(inputs.surveys):
                 if len(s.imu) and s.waypoints.shape[0] >= 2 and s.t.size:
-                    rssi = RssiReadings(s.t, np.array([index[i] for i in s.ids], np.int32), s.rssi)
                     floor = inputs.site.floor_index[s.floor_id]
-                    self.walks[w] = HeldWalk(rssi, s.imu, s.waypoints, floor)
+                    self.walks[w] = HeldWalk(s.wifi(index), s.imu, s.waypoints, floor)
         self.per_fold = per_fold
         self.pdr = base.pdr()
         default = HmmParams()
@@ -613,8 +614,7 @@ class FloorReplays:
         if params is not None:
             for w, s in enumerate(inputs.surveys):
                 if s.t.size:
-                    rssi = RssiReadings(s.t, np.array([index[i] for i in s.ids], np.int32), s.rssi)
-                    self.walks[w] = FloorWalk(rssi, inputs.site.floor_index[s.floor_id])
+                    self.walks[w] = FloorWalk(s.wifi(index), inputs.site.floor_index[s.floor_id])
         self.scores: dict[float, list[float]] = {w: [] for w in FLOOR_WEIGHT_CANDIDATES}
 
     def on_fold(
@@ -622,10 +622,11 @@ class FloorReplays:
     ) -> None:
         """Replay the fold's held-out walks, joined in pairs across floors, on its maps."""
         held = [w for w in np.unique(walk_of_scan[test]).tolist() if w in self.walks]
-        if not held:
+        walks = [self.walks[w] for w in held]
+        if len({walk.floor for walk in walks}) < 2:
+            # nothing to join across floors
             return
         model = EmissionModel(maps, self.params)
-        walks = [self.walks[w] for w in held]
         for weight, pairs in floor_pair_scores(
             model, walks, FLOOR_WEIGHT_CANDIDATES, self.params
         ).items():
