@@ -20,6 +20,10 @@ from tests.conftest import ADMIN_KEY, LiveServer, floor_doc
 from tests.e2e.recording import batches, walk
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
+# a device is flushed after this many wall seconds of silence; the tests that count the
+# positions of `?wait=true` answers need it longer than any stall of a loaded test machine
+# between an answer and the next post, or a flush positions a window outside every answer
+PATIENT = {"LOCUS_FLUSH_AFTER_S": "3"}
 
 
 def _setup(server: LiveServer, site: str) -> httpx.Client:
@@ -48,7 +52,17 @@ def _worker_pids(server_pid: int) -> list[int]:
     return sorted(pids)
 
 
-def test_positions_flow_from_ingest_to_websocket_and_history(live_server: LiveServer) -> None:
+def test_positions_flow_from_ingest_to_websocket_and_history(
+    new_database: Any, tmp_path: Path
+) -> None:
+    live_server = LiveServer(database_url=new_database(), home=tmp_path, workers=2, env=PATIENT)
+    try:
+        _positions_flow(live_server)
+    finally:
+        live_server.stop()
+
+
+def _positions_flow(live_server: LiveServer) -> None:
     http = _setup(live_server, "e2e")
     received: list[dict] = []
     ws_url = live_server.url.replace("http", "ws") + f"/v1/ws/positions?site_id=e2e&key={ADMIN_KEY}"
@@ -86,7 +100,7 @@ def test_replay_gives_identical_positions(new_database: Any, tmp_path: Path) -> 
     for run, size in enumerate((9, 31)):
         home = tmp_path / f"run{run}"
         home.mkdir()
-        server = LiveServer(database_url=new_database(), home=home, workers=2)
+        server = LiveServer(database_url=new_database(), home=home, workers=2, env=PATIENT)
         try:
             http = _setup(server, "replay")
             out = []
