@@ -6,6 +6,7 @@ import logging
 import queue
 import signal
 import time
+from multiprocessing.connection import Connection
 from typing import Any
 
 from app.core.config import Settings
@@ -50,8 +51,11 @@ def handle_safely(shard: Shard, messages: list[Ingest]) -> list[Done]:
     return results
 
 
-def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> None:
-    """Run one shard until a stop message (SIGTERM also stops it cleanly)."""
+def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Connection) -> None:
+    """Run one shard until a stop message (SIGTERM also stops it cleanly).
+
+    Results go out on ``outbox``, the sending end of a pipe the API reads.
+    """
     settings = Settings.model_validate_json(settings_json)
     configure_logging()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -68,7 +72,7 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
     # ready once every site is built: a new device's first batch must not wait for rasters
     sites.poll(wait=True)
     shard = Shard(shard=shard_id, settings=settings, sessions=sessions, clock=now_ms, sites=sites)
-    outbox.put(encode([Ready(shard_id)]))
+    outbox.send_bytes(encode([Ready(shard_id)]))
     ledger: CoverageLedger[str] = CoverageLedger()
     last_stats = 0.0
     while not stopping:
@@ -87,13 +91,13 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Any) -> N
         if acked:
             out.append(Acked(acked))
         if out:
-            outbox.put(encode(out))
+            outbox.send_bytes(encode(out))
         sites.poll()
         if time.monotonic() - last_stats >= settings.worker_stats_every_s:
-            outbox.put(encode([shard.stats()]))
+            outbox.send_bytes(encode([shard.stats()]))
             last_stats = time.monotonic()
     emitted = shard.drain()
     shard.newly_covered()
-    outbox.put(encode([*emitted, Acked(ledger.release_all()), shard.stats()]))
+    outbox.send_bytes(encode([*emitted, Acked(ledger.release_all()), shard.stats()]))
     sites.close()
     engine.dispose()
