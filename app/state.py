@@ -144,11 +144,12 @@ def get_db(request: Request) -> Iterator[Session]:
 SessionDep = Annotated[Session, Depends(get_db)]
 
 
-async def get_runtime(state: StateDep) -> Runtime:
-    """Return the worker runtime, or 503 on a node that runs no workers."""
+def runtime_of(state: AppState) -> Runtime:
+    """Return the worker runtime, or 503 on a node that runs no workers.
+
+    A plain call, not a dependency: the ingest handlers are the hottest path, and
+    FastAPI's solving of each dependency cost them more than this check.
+    """
     if state.runtime is None:
         raise Unavailable("this node runs no filter workers")
     return state.runtime
-
-
-RuntimeDep = Annotated[Runtime, Depends(get_runtime)]

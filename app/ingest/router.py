@@ -37,7 +37,7 @@ from app.ingest.schemas import (
     Sighting,
 )
 from app.keys.deps import PrincipalDep, websocket_principal
-from app.state import AppState, RuntimeDep, StateDep, app_state
+from app.state import AppState, app_state, runtime_of
 from app.workers.runtime import Runtime
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
@@ -123,12 +123,12 @@ def _refusal(exc: ApiError | DomainError) -> dict[str, Any]:
 async def ingest(
     principal: PrincipalDep,
     request: Request,
-    state: StateDep,
-    runtime: RuntimeDep,
     wait: bool = Query(False, description="Answer after processing, with the positions"),
 ) -> JSONResponse:
     """Accept a device's batch; 202 at once, or 200 with its positions with ``?wait=true``."""
     _may_ingest(principal)
+    state = app_state(request)
+    runtime = runtime_of(state)
     raw = await _read_body(request, state.settings.max_body_bytes)
     result = await _ingest_one(raw, principal=principal, state=state, runtime=runtime, wait=wait)
     return _answer(result, wait)
@@ -143,8 +143,6 @@ async def ingest(
 async def ingest_bulk(
     principal: PrincipalDep,
     request: Request,
-    state: StateDep,
-    runtime: RuntimeDep,
     wait: bool = Query(False, description="Answer after processing, with each batch's positions"),
 ) -> JSONResponse:
     """Accept many devices' batches (a gateway's); each is validated and processed on its own.
@@ -156,6 +154,8 @@ async def ingest_bulk(
     large.
     """
     _may_ingest(principal)
+    state = app_state(request)
+    runtime = runtime_of(state)
     raw = await _read_body(request, state.settings.bulk_max_body_bytes)
     items = service.bulk_items(raw, state.settings)
 
@@ -180,8 +180,6 @@ async def ingest_bulk(
 async def ingest_locator(
     principal: PrincipalDep,
     request: Request,
-    state: StateDep,
-    runtime: RuntimeDep,
     wait: bool = Query(
         False,
         description="Answer after processing, with the positions the tags' filters emitted; "
@@ -190,6 +188,8 @@ async def ingest_locator(
 ) -> JSONResponse:
     """Accept a locator's sightings of tags; each goes to its tag's filter."""
     _may_ingest(principal)
+    state = app_state(request)
+    runtime = runtime_of(state)
     raw = await _read_body(request, state.settings.max_body_bytes)
     batch, dropped = _parse_locator(raw, state)
     result = await flows.ingest_locator(

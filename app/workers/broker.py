@@ -12,6 +12,7 @@ samples it has already used are counted as late, not used twice.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import multiprocessing as mp
 import threading
@@ -61,7 +62,8 @@ class Broker(Protocol):
 
 class _Slot:
     """One shard's worker process, its queues and its unacknowledged batches (encoded);
-    ``processed`` are those of them it has processed (kept until a snapshot holds them)."""
+    ``processed`` are those of them it has processed (kept until a snapshot holds them),
+    ``outgoing`` those published in this turn of the event loop, not yet in the inbox."""
 
     def __init__(self, shard: int) -> None:
         self.shard = shard
@@ -71,6 +73,7 @@ class _Slot:
         self.reader: threading.Thread | None = None
         self.pending: OrderedDict[str, bytes] = OrderedDict()
         self.processed: set[str] = set()
+        self.outgoing: list[bytes] = []
         self.ready = threading.Event()
 
 
@@ -120,8 +123,10 @@ class MemoryBroker:
             # the worker holds the only sending end now: its exit ends the reader's stream
             sending.close()
             slot.processed.clear()
-            for data in slot.pending.values():
-                slot.inbox.put(data)
+            # the pending batches include those not handed over yet
+            slot.outgoing.clear()
+            if slot.pending:
+                slot.inbox.put(list(slot.pending.values()))
         slot.reader = threading.Thread(
             target=self._read,
             args=(slot, slot.outbox),
@@ -172,7 +177,7 @@ class MemoryBroker:
         self._stopping.set()
         for slot in self._slots:
             if slot.process is not None and slot.process.is_alive():
-                slot.inbox.put(encode(STOP))
+                slot.inbox.put([encode(STOP)])
         for slot in self._slots:
             if slot.process is None:
                 continue
@@ -188,12 +193,27 @@ class MemoryBroker:
     # -- traffic ---------------------------------------------------------------------
 
     def publish(self, shard: int, message: Ingest) -> None:
-        """Record the batch as pending and hand it to the shard's worker."""
+        """Record the batch as pending and hand it to the shard's worker.
+
+        Called on the event loop. The batches published in one turn of the loop go to
+        the worker in one put, once the turn ends: each put wakes the queue's feeder
+        thread, which took a fifth of the API process's time at saturation.
+        """
         slot = self._slots[shard]
         data = encode(message)
         with self._lock:
             slot.pending[message.batch_id] = data
-            slot.inbox.put(data)
+            slot.outgoing.append(data)
+            first = len(slot.outgoing) == 1
+        if first:
+            asyncio.get_running_loop().call_soon(self._hand_over, slot)
+
+    def _hand_over(self, slot: _Slot) -> None:
+        """Put the batches published in this turn of the loop into the worker's inbox."""
+        with self._lock:
+            if slot.outgoing:
+                slot.inbox.put(slot.outgoing)
+                slot.outgoing = []
 
     def backlog(self, shard: int) -> int:
         """Return the shard's batches not processed yet."""

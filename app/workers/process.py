@@ -22,13 +22,15 @@ log = logging.getLogger(__name__)
 
 
 def _drain(inbox: Any, timeout: float, most: int) -> list[bytes]:
+    """Return the messages waiting in the inbox (each item a list of them), waiting up to
+    ``timeout`` for the first; stop taking items once ``most`` messages are taken."""
     try:
-        messages = [inbox.get(timeout=timeout)]
+        messages = list(inbox.get(timeout=timeout))
     except queue.Empty:
         return []
     while len(messages) < most:
         try:
-            messages.append(inbox.get_nowait())
+            messages.extend(inbox.get_nowait())
         except queue.Empty:
             break
     return messages
