@@ -231,6 +231,15 @@ class Settings(BaseSettings):
         le=100_000,
         description="At most this many queued messages a worker takes in one round.",
     )
+    worker_linger_ms: float = Field(
+        default=5.0,
+        ge=0,
+        le=1000,
+        description="A worker of the embedded broker waits up to this long after a round's "
+        "first message for more: a round costs about as much for one device as for a few "
+        "(the filter's numpy calls, the database transaction), so lingering trades a few "
+        "ms of latency for CPU per update.",
+    )
     worker_stats_every_s: float = Field(
         default=1.0,
         gt=0,

@@ -21,16 +21,19 @@ from app.workers.sites import SiteCache
 log = logging.getLogger(__name__)
 
 
-def _drain(inbox: Any, timeout: float, most: int) -> list[bytes]:
+def _drain(inbox: Any, timeout: float, most: int, linger: float) -> list[bytes]:
     """Return the messages waiting in the inbox (each item a list of them), waiting up to
-    ``timeout`` for the first; stop taking items once ``most`` messages are taken."""
+    ``timeout`` for the first and then up to ``linger`` seconds for more; stop taking
+    items once ``most`` messages are taken."""
     try:
         messages = list(inbox.get(timeout=timeout))
     except queue.Empty:
         return []
+    until = time.monotonic() + linger
     while len(messages) < most:
+        left = until - time.monotonic()
         try:
-            messages.extend(inbox.get_nowait())
+            messages.extend(inbox.get(timeout=left) if left > 0 else inbox.get_nowait())
         except queue.Empty:
             break
     return messages
@@ -78,7 +81,12 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Connectio
     ledger: CoverageLedger[str] = CoverageLedger()
     last_stats = 0.0
     while not stopping:
-        drained = _drain(inbox, timeout=0.05, most=settings.worker_max_messages)
+        drained = _drain(
+            inbox,
+            timeout=0.05,
+            most=settings.worker_max_messages,
+            linger=settings.worker_linger_ms / 1000,
+        )
         inbound = [decode_inbound(data) for data in drained]
         stopping = stopping or any(isinstance(m, Stop) for m in inbound)
         messages = [m for m in inbound if isinstance(m, Ingest)]
