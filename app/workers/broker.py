@@ -1,11 +1,12 @@
 """The broker between API and workers: publish a batch to a shard, receive results.
 
-``MemoryBroker`` is the embedded default: worker processes on this machine
-fed through multiprocessing queues. Like a stream with consumer groups, it
+``MemoryBroker`` is the embedded default: worker processes on this machine,
+each fed through a multiprocessing queue and answering on a pipe. Like a
+stream with consumer groups, it
 keeps every published batch until the worker acknowledges it, which the
 worker does once a stored snapshot of the batch's device holds it
 (``app.workers.coverage``); when a worker dies, a supervisor starts a new one
-on fresh queues and re-delivers every unacknowledged batch in order. The new
+on a fresh queue and pipe and re-delivers every unacknowledged batch in order. The new
 worker resumes its devices from their stored snapshots, and re-delivered
 samples it has already used are counted as late, not used twice.
 """
