@@ -2,13 +2,13 @@
 
 ``MemoryBroker`` is the embedded default: worker processes on this machine,
 each fed through a multiprocessing queue and answering on a pipe. Like a
-stream with consumer groups, it
-keeps every published batch until the worker acknowledges it, which the
-worker does once a stored snapshot of the batch's device holds it
-(``app.workers.coverage``); when a worker dies, a supervisor starts a new one
-on a fresh queue and pipe and re-delivers every unacknowledged batch in order. The new
-worker resumes its devices from their stored snapshots, and re-delivered
-samples it has already used are counted as late, not used twice.
+stream with consumer groups, it keeps every published batch until the worker
+acknowledges it, which the worker does once a stored snapshot of the batch's
+device holds it (``app.workers.coverage``); when a worker dies, a supervisor
+starts a new one on a fresh queue and pipe and re-delivers every
+unacknowledged batch in order. The new worker resumes its devices from their
+stored snapshots, and re-delivered samples it has already used are counted
+as late, not used twice.
 """
 
 from __future__ import annotations
