@@ -197,8 +197,9 @@ class MemoryBroker:
         """Record the batch as pending and hand it to the shard's worker.
 
         Called on the event loop. The batches published in one turn of the loop go to
-        the worker in one put, once the turn ends: each put wakes the queue's feeder
-        thread, which took a fifth of the API process's time at saturation.
+        the worker in one put, once the turn ends: each put takes the queue's lock and
+        wakes its feeder thread (6.7% of the API process's samples at saturation with a
+        put per batch, 2.6% with a put per turn).
         """
         slot = self._slots[shard]
         data = encode(message)
