@@ -76,6 +76,12 @@ class Settings(BaseSettings):
         description="A worker that stops renewing loses its shards after this.",
     )
     access_log: bool = Field(default=False, description="Log every HTTP request.")
+    opentelemetry: bool = Field(
+        default=False,
+        description="Trace and measure requests with FastAPI's OpenTelemetry instrumentation "
+        "(for a deployment that configures an OpenTelemetry SDK); off, requests skip its "
+        "per-request check for a configured provider.",
+    )
 
     # Ingest limits (API.md: 1 MiB body, 10,000 samples).
     max_body_bytes: int = Field(
