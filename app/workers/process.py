@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import queue
 import signal
 import time
 from multiprocessing.connection import Connection
@@ -15,27 +15,25 @@ from app.core.logging import configure_logging
 from app.core.time import now_ms
 from app.workers.coverage import CoverageLedger
 from app.workers.messages import Acked, Done, Ingest, Ready, Result, Stop, decode_inbound, encode
+from app.workers.pipes import Inbox, send
 from app.workers.shard import Shard
 from app.workers.sites import SiteCache
 
 log = logging.getLogger(__name__)
 
 
-def _drain(inbox: Any, timeout: float, most: int, linger: float) -> list[bytes]:
-    """Return the messages waiting in the inbox (each item a list of them), waiting up to
-    ``timeout`` for the first and then up to ``linger`` seconds for more; stop taking
-    items once ``most`` messages are taken."""
-    try:
-        messages = list(inbox.get(timeout=timeout))
-    except queue.Empty:
+def _drain(inbox: Inbox, timeout: float, most: int, linger: float) -> list[bytes]:
+    """Return the messages waiting in the inbox, waiting up to ``timeout`` for the first
+    and then up to ``linger`` seconds for more; take at most ``most`` messages."""
+    messages = inbox.take(timeout, most)
+    if not messages:
         return []
     until = time.monotonic() + linger
     while len(messages) < most:
-        left = until - time.monotonic()
-        try:
-            messages.extend(inbox.get(timeout=left) if left > 0 else inbox.get_nowait())
-        except queue.Empty:
+        more = inbox.take(max(until - time.monotonic(), 0.0), most - len(messages))
+        if not more:
             break
+        messages.extend(more)
     return messages
 
 
@@ -56,10 +54,11 @@ def handle_safely(shard: Shard, messages: list[Ingest]) -> list[Done]:
     return results
 
 
-def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Connection) -> None:
-    """Run one shard until a stop message (SIGTERM also stops it cleanly).
+def worker_main(shard_id: int, settings_json: str, inbox: Connection, outbox: Connection) -> None:
+    """Run one shard until a stop message, SIGTERM or the API closing the inbox.
 
-    Results go out on ``outbox``, the sending end of a pipe the API reads.
+    Batches come in on ``inbox`` and results go out on ``outbox``, the ends of two pipes
+    whose other ends the API holds (``app.workers.pipes`` frames both).
     """
     settings = Settings.model_validate_json(settings_json)
     configure_logging()
@@ -77,18 +76,19 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Connectio
     # ready once every site is built: a new device's first batch must not wait for rasters
     sites.poll(wait=True)
     shard = Shard(shard=shard_id, settings=settings, sessions=sessions, clock=now_ms, sites=sites)
-    outbox.send_bytes(encode([Ready(shard_id)]))
+    send(outbox, encode([Ready(shard_id)]))
+    batches = Inbox(inbox)
     ledger: CoverageLedger[str] = CoverageLedger()
     last_stats = 0.0
     while not stopping:
         drained = _drain(
-            inbox,
+            batches,
             timeout=0.05,
             most=settings.worker_max_messages,
             linger=settings.worker_linger_ms / 1000,
         )
         inbound = [decode_inbound(data) for data in drained]
-        stopping = stopping or any(isinstance(m, Stop) for m in inbound)
+        stopping = stopping or batches.closed or any(isinstance(m, Stop) for m in inbound)
         messages = [m for m in inbound if isinstance(m, Ingest)]
         out: list[Result] = []
         acked: list[str] = []
@@ -100,14 +100,20 @@ def worker_main(shard_id: int, settings_json: str, inbox: Any, outbox: Connectio
         acked += ledger.release(shard.newly_covered())
         if acked:
             out.append(Acked(acked))
-        if out:
-            outbox.send_bytes(encode(out))
-        sites.poll()
         if time.monotonic() - last_stats >= settings.worker_stats_every_s:
-            outbox.send_bytes(encode([shard.stats()]))
+            out.append(shard.stats())
             last_stats = time.monotonic()
+        try:
+            if out:
+                send(outbox, encode(out))
+        except BrokenPipeError:
+            log.warning("shard %d: the API is gone; stopping", shard_id)
+            stopping = True
+        sites.poll()
+    # the devices' snapshots are written even when nobody reads the last results
     emitted = shard.drain()
     shard.newly_covered()
-    outbox.send_bytes(encode([*emitted, Acked(ledger.release_all()), shard.stats()]))
+    with contextlib.suppress(BrokenPipeError):
+        send(outbox, encode([*emitted, Acked(ledger.release_all()), shard.stats()]))
     sites.close()
     engine.dispose()

@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import threading
@@ -101,11 +102,20 @@ class RedisBroker:
         self._owned = [False] * self.shards
         self._threads: list[threading.Thread] = []
 
-    def start(self, on_results: ResultHandler) -> None:
-        """Start the publisher and the results listener."""
+    async def start(self, on_results: ResultHandler) -> None:
+        """Start the publisher and the results listener (``on_results`` runs on this loop)."""
+        loop = asyncio.get_running_loop()
+
+        def on_loop(results: list[Result]) -> None:
+            if not loop.is_closed():
+                loop.call_soon_threadsafe(on_results, results)
+
+        self._on_results = on_loop
+        await asyncio.to_thread(self._start_threads)
+
+    def _start_threads(self) -> None:
         for shard in range(self.shards):
             ensure_group(self.client, shard)
-        self._on_results = on_results
         for target, name in (
             (self._publish_loop, "redis-publish"),
             (self._listen, "redis-results"),
@@ -201,8 +211,11 @@ class RedisBroker:
             return False
         return all(self._owned)
 
-    def stop(self) -> None:
+    async def stop(self) -> None:
         """Flush what is queued and stop the threads."""
+        await asyncio.to_thread(self._stop_threads)
+
+    def _stop_threads(self) -> None:
         deadline = time.monotonic() + 5
         while self._outgoing and time.monotonic() < deadline:
             time.sleep(0.05)

@@ -81,7 +81,7 @@ class Runtime:
             self.broker.on_restart = lambda shard: self.metrics.worker_restarts.labels(
                 str(shard)
             ).inc()
-        await asyncio.to_thread(self.broker.start, self._from_thread)
+        await self.broker.start(self._dispatch)
         self._forwarder = asyncio.create_task(self._forward_parked())
         if self.local_workers is not None:
             self.local_workers.start()
@@ -92,7 +92,7 @@ class Runtime:
             self._forwarder.cancel()
         if self.local_workers is not None:
             await asyncio.to_thread(self.local_workers.stop)
-        await asyncio.to_thread(self.broker.stop)
+        await self.broker.stop()
 
     # -- submit ------------------------------------------------------------------------
 
@@ -187,10 +187,6 @@ class Runtime:
         return self.processed_wifi_t.get(key, -1)
 
     # -- results ----------------------------------------------------------------------
-
-    def _from_thread(self, results: list[Result]) -> None:
-        if self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self._dispatch, results)
 
     def _dispatch(self, results: list[Result]) -> None:
         fan_out: list[Position | ZoneEvent] = []
