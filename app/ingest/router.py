@@ -27,6 +27,7 @@ from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
 from app.core.security import Principal
 from app.ingest import flows, service
+from app.ingest.route import IngestRoute
 from app.ingest.schemas import (
     BulkAnswer,
     BulkIngest,
@@ -40,7 +41,7 @@ from app.keys.deps import PrincipalDep, websocket_principal
 from app.state import AppState, app_state, runtime_of
 from app.workers.runtime import Runtime
 
-router = APIRouter(prefix="/v1", tags=["ingest"])
+router = APIRouter(prefix="/v1", tags=["ingest"], route_class=IngestRoute)
 
 
 async def _read_body(request: Request, limit: int) -> bytes:

@@ -436,3 +436,27 @@ def test_transmitter_ids_match_in_any_case(client: TestClient, admin: dict) -> N
     xy = [f["geometry"]["coordinates"][:2] for f in transmitters]
     # a weighted centroid of all three, not the one beacon whose id matched by case
     assert min(math.dist((position["x"], position["y"]), b) for b in xy) > 1.0, position
+
+
+@pytest.mark.parametrize("route", ["/v1/ingest", "/v1/ingest/bulk"])
+def test_ingest_answers_alike_however_its_query_is_spelt(
+    client: TestClient, admin: dict, site_id: str, route: str
+) -> None:
+    def post(query: str, headers: dict, device: str) -> Any:
+        body: dict = batch(site_id, f"{site_id}-{device}")
+        if route.endswith("bulk"):
+            body = {"batches": [body]}
+        return client.post(route + query, json=body, headers=headers)
+
+    for n, query in enumerate(["?wait=true", "?wait=1", "?wait=yes", "?wait=True"]):
+        r = post(query, admin, f"q{n}")
+        assert r.status_code == 200, (query, r.text)
+    for n, query in enumerate(["", "?wait=false", "?wait=0", "?wait=no"]):
+        assert post(query, admin, f"n{n}").status_code == 202, query
+    r = post("?wait=true&site=x", admin, "unknown")
+    assert r.status_code == 422 and "site" in r.json()["error"]["message"], r.text
+    r = post("?wait=maybe", admin, "bad")
+    assert r.status_code == 422 and "wait" in r.text, r.text
+    for query in ("?wait=true", "?wait=yes"):
+        r = post(query, {}, "anonymous")
+        assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized", (query, r.text)
