@@ -6,7 +6,7 @@ import json
 import math
 from typing import Any
 
-from shapely import Point
+import shapely
 
 from app.core.identity import DeviceKey
 from app.engine.samples import Batch, Estimate
@@ -228,7 +228,7 @@ class DeviceSession:
         inside = frozenset(
             z.name
             for z in self.site.zones
-            if z.floor == estimate.floor and z.polygon.contains(Point(estimate.x, estimate.y))
+            if z.floor == estimate.floor and shapely.contains_xy(z.polygon, estimate.x, estimate.y)
         )
         return [
             {
