@@ -359,8 +359,7 @@ class Shard:
         return snaps
 
     def _write_snapshots(self, db: Session, snaps: list[Snapshot]) -> None:
-        for device, t, _, blob in snaps:
-            self.store.save(db, device.key, t, blob)
+        self.store.save_all(db, [(device.key, t, blob) for device, t, _, blob in snaps])
 
     def _saved(self, snaps: list[Snapshot]) -> None:
         """Note the snapshots as stored, once their transaction committed."""

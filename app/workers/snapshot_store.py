@@ -5,9 +5,14 @@ Snapshots are keyed by (site, device): the same device id in two sites has two.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from functools import cache
 from typing import TYPE_CHECKING, Protocol, cast
 
+from sqlalchemy import Table
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
+from sqlalchemy.sql.expression import Executable
 
 from app.core.identity import DeviceKey
 from app.devices.models import DeviceStateRecord
@@ -23,8 +28,8 @@ class SnapshotStore(Protocol):
         """Return the snapshot bytes of the device (site, device), or None."""
         ...
 
-    def save(self, db: Session, key: DeviceKey, t: int, blob: bytes) -> None:
-        """Store the snapshot taken at measurement time ``t``."""
+    def save_all(self, db: Session, snapshots: Sequence[tuple[DeviceKey, int, bytes]]) -> None:
+        """Store each (device, measurement time ``t`` of the snapshot, snapshot bytes)."""
         ...
 
 
@@ -36,13 +41,32 @@ class DatabaseSnapshots:
         row = db.get(DeviceStateRecord, key)
         return None if row is None else row.snapshot
 
-    def save(self, db: Session, key: DeviceKey, t: int, blob: bytes) -> None:
-        """Insert or replace the device's snapshot."""
-        row = db.get(DeviceStateRecord, key)
-        if row is None:
-            db.add(DeviceStateRecord(site_id=key[0], device_id=key[1], t=t, snapshot=blob))
-        else:
-            row.t, row.snapshot = t, blob
+    def save_all(self, db: Session, snapshots: Sequence[tuple[DeviceKey, int, bytes]]) -> None:
+        """Insert or replace the devices' snapshots: one upsert for the round (the ORM's
+        read-then-write was 4.4% of a worker's samples at saturation)."""
+        if snapshots:
+            rows = [
+                {"site_id": site, "device_id": device, "t": t, "snapshot": blob}
+                for (site, device), t, blob in snapshots
+            ]
+            db.execute(_upsert(db.get_bind().dialect.name), rows)
+
+
+@cache
+def _upsert(dialect_name: str) -> Executable:
+    """Return the snapshot upsert, a Core statement compiled once for any number of rows."""
+    dialect = postgresql if dialect_name == "postgresql" else sqlite
+    table = DeviceStateRecord.__table__
+    assert isinstance(table, Table)
+    statement = dialect.insert(table)
+    return statement.on_conflict_do_update(
+        index_elements=[table.c.site_id, table.c.device_id],
+        set_={
+            "t": statement.excluded.t,
+            "snapshot": statement.excluded.snapshot,
+            "updated_at": statement.excluded.updated_at,
+        },
+    )
 
 
 def redis_snapshot_key(key: DeviceKey) -> str:
@@ -72,10 +96,11 @@ class RedisSnapshots:
             return legacy[b"blob"]
         return None
 
-    def save(self, db: Session, key: DeviceKey, t: int, blob: bytes) -> None:
-        """Write the snapshot (expiring after a week of silence)."""
-        name = redis_snapshot_key(key)
+    def save_all(self, db: Session, snapshots: Sequence[tuple[DeviceKey, int, bytes]]) -> None:
+        """Write the snapshots (each expiring after a week of silence) in one round trip."""
         pipe = self.client.pipeline()
-        pipe.hset(name, mapping={"site": key[0], "t": t, "blob": blob})
-        pipe.expire(name, self.ttl_s)
+        for key, t, blob in snapshots:
+            name = redis_snapshot_key(key)
+            pipe.hset(name, mapping={"site": key[0], "t": t, "blob": blob})
+            pipe.expire(name, self.ttl_s)
         pipe.execute()
