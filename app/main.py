@@ -14,6 +14,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core.config import Settings, get_settings
 from app.core.errors import install_error_handlers
+from app.core.heap import settle_heap
 from app.core.openapi import install_openapi
 from app.core.query import reject_unknown_query
 from app.devices.router import router as devices_router
@@ -69,6 +70,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         state = await AppState.open(settings)
         app.state.locus = state
+        settle_heap()
         try:
             yield
         finally:

@@ -11,6 +11,7 @@ from typing import Any
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
+from app.core.heap import settle_heap
 from app.core.logging import configure_logging
 from app.core.time import now_ms
 from app.workers.coverage import CoverageLedger
@@ -76,6 +77,7 @@ def worker_main(shard_id: int, settings_json: str, inbox: Connection, outbox: Co
     # ready once every site is built: a new device's first batch must not wait for rasters
     sites.poll(wait=True)
     shard = Shard(shard=shard_id, settings=settings, sessions=sessions, clock=now_ms, sites=sites)
+    settle_heap()
     send(outbox, encode([Ready(shard_id)]))
     batches = Inbox(inbox)
     ledger: CoverageLedger[str] = CoverageLedger()
