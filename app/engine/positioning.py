@@ -48,7 +48,6 @@ from app.engine.preprocess import (
     Preprocessor,
     PreprocessParams,
     Window,
-    group_by_floor,
     mean_by_transmitter,
 )
 from app.engine.radiomap import RadioMap
@@ -370,17 +369,16 @@ class PositioningEngine:
         self._release_idle(dev, win.t1)
         if ranked.size == 0:
             return -1, []
-        groups = group_by_floor(rssi.tx, self._tx_floor)
+        # each transmitter is on one floor: averaged once, then split by floor
+        heard, heard_mean, heard_count = mean_by_transmitter(rssi.tx, rssi.rssi)
+        heard_floor = self._tx_floor[heard]
         no_imu = win.t1 - dev.imu_t > p.imu_timeout_ms
         walk_s = min((win.t1 - dev.last_t) / 1000.0, p.max_walk_s) if no_imu else 0.0
         dev.last_t = win.t1
         inputs = []
         for f in ranked[: p.max_active_floors].tolist():
-            pick = groups.get(f)
-            if pick is None:
-                tx, mean, count = np.zeros(0, np.intp), np.zeros(0), np.zeros(0)
-            else:
-                tx, mean, count = mean_by_transmitter(rssi.tx[pick], rssi.rssi[pick])
+            pick = heard_floor == f
+            tx, mean, count = heard[pick], heard_mean[pick], heard_count[pick]
             if f not in dev.slots:
                 dev.slots[f] = self.bank.allocate()
             on_floor = np.flatnonzero(win.fixes.floor == f)

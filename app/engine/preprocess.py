@@ -76,19 +76,6 @@ def split_sorted(t: np.ndarray, window_ms: int) -> tuple[np.ndarray, np.ndarray]
     return w[bounds[:-1]], bounds
 
 
-def group_by_floor(tx: np.ndarray, tx_floor: np.ndarray) -> dict[int, np.ndarray]:
-    """Return, per floor index, the positions of the readings whose transmitter is on it."""
-    floors = np.asarray(tx_floor)[np.asarray(tx, dtype=np.intp)]
-    if floors.size == 0:
-        return {}
-    if floors.min() == floors.max():
-        return {int(floors[0]): np.arange(floors.size)}
-    order = np.argsort(floors, kind="stable")
-    keys, first = np.unique(floors[order], return_index=True)
-    bounds = np.append(first, order.size)
-    return {int(k): order[bounds[i] : bounds[i + 1]] for i, k in enumerate(keys)}
-
-
 def mean_by_transmitter(
     tx: np.ndarray, rssi: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -103,6 +90,11 @@ def mean_by_transmitter(
 def _take(arrays: Any, index: np.ndarray) -> Any:
     """Return a copy of a samples dataclass keeping rows ``index``."""
     return type(arrays)(**{k: v[index] for k, v in vars(arrays).items()})
+
+
+def _slice(arrays: Any, lo: int, hi: int | None) -> Any:
+    """Return a samples dataclass holding rows ``lo:hi`` (views, not copies)."""
+    return type(arrays)(**{k: v[lo:hi] for k, v in vars(arrays).items()})
 
 
 def _concat(a: Any, b: Any) -> Any:
@@ -165,7 +157,7 @@ class Preprocessor:
             return []
         w = self.params.window_ms
         # windows ending at or before the newest sample's window start are complete
-        return self._release(int(window_start(np.array([self.newest]), w)[0]))
+        return self._release(self.newest // w * w)
 
     def flush(self) -> list[Window]:
         """Release every pending measurement, the last window possibly incomplete."""
@@ -178,6 +170,9 @@ class Preprocessor:
             return []
         # window of each pending sample; late ones join the first open window
         start = {k: np.maximum(window_start(self.pending[k].t, w), self.open_from) for k in kinds}
+        one = self._release_one(kinds, start, before)
+        if one is not None:
+            return one
         all_starts = np.unique(np.concatenate([start[k] for k in kinds]))
         ready = all_starts[all_starts < before]
         if ready.size == 0:
@@ -191,3 +186,33 @@ class Preprocessor:
             self.pending[kind] = _take(self.pending[kind], np.flatnonzero(start[kind] >= cut))
         self.open_from = cut
         return windows
+
+    def _release_one(
+        self, kinds: list[str], start: dict[str, np.ndarray], before: int
+    ) -> list[Window] | None:
+        """Release the common case by slicing: at most one window complete, windows in order.
+
+        A device posting every second holds the window its last batch completed
+        and the one its newest samples opened; slices of in-order samples avoid
+        the general path's sort and copies. None when the case does not apply.
+        """
+        cuts = {}
+        first = None
+        for kind in kinds:
+            s = start[kind]
+            if s.size > 1 and (s[1:] < s[:-1]).any():
+                return None
+            cut = int(np.searchsorted(s, before))
+            if cut:
+                if s[0] != s[cut - 1] or (first is not None and int(s[0]) != first):
+                    return None
+                first = int(s[0])
+            cuts[kind] = cut
+        if first is None:
+            return []
+        parts = {k: _slice(self.pending[k], 0, c) for k, c in cuts.items() if c}
+        for kind, cut in cuts.items():
+            self.pending[kind] = _slice(self.pending[kind], cut, None)
+        w = self.params.window_ms
+        self.open_from = first + w
+        return [Window(t0=first, t1=first + w, **parts)]

@@ -9,7 +9,6 @@ from app.engine.preprocess import (
     Preprocessor,
     PreprocessParams,
     Window,
-    group_by_floor,
     mean_by_transmitter,
     split_sorted,
 )
@@ -106,14 +105,53 @@ def test_snapshot_resumes_with_pending_samples() -> None:
     assert _flat(a.push(rssi=rest) + a.flush()) == _flat(b.push(rssi=rest) + b.flush())
 
 
-def test_readings_grouped_by_transmitter_floor_and_averaged_per_transmitter() -> None:
-    tx_floor = np.array([0, 2, 2, 1])
+def test_readings_averaged_per_transmitter() -> None:
     tx = np.array([1, 0, 3, 2, 1, 1])
-    groups = group_by_floor(tx, tx_floor)
-    assert {f: g.tolist() for f, g in groups.items()} == {0: [1], 1: [2], 2: [0, 3, 4, 5]}
     keys, mean, count = mean_by_transmitter(
         tx, np.array([-50.0, -60.0, -70.0, -80.0, -52.0, -54.0])
     )
     assert keys.tolist() == [0, 1, 2, 3]
     assert mean.tolist() == [-60.0, -52.0, -80.0, -70.0]
     assert count.tolist() == [1, 3, 1, 1]
+
+
+def test_second_by_second_pushes_release_what_one_push_of_everything_does() -> None:
+    """A device posting each second (one window complete per push) and a replay posting
+    everything at once get the same windows, late steps and a barometer included."""
+    stream = _stream(6)
+    pressure = Pressure(
+        t=np.arange(10_250, 18_000, 500, dtype=np.int64), hpa=np.linspace(1001.0, 1000.2, 16)
+    )
+    steps = Steps(
+        t=np.arange(10_400, 18_000, 600, dtype=np.int64),
+        length=np.full(13, 0.7),
+        heading=np.linspace(0.0, 120.0, 13),
+        swing=np.full(13, 3.0),
+    )
+
+    def kinds(w: Window) -> tuple[object, ...]:
+        return (
+            w.t0,
+            w.rssi.t.tolist(),
+            w.pressure.hpa.tolist(),
+            w.steps.t.tolist(),
+            w.steps.heading.tolist(),
+        )
+
+    whole = Preprocessor(PreprocessParams())
+    expected = whole.push(rssi=stream, pressure=pressure) + whole.push(steps=steps)
+    expected += whole.flush()
+    live = Preprocessor(PreprocessParams())
+    got: list[Window] = []
+    for lo in range(10_000, 18_000, 1000):
+        got += live.push(
+            rssi=_cut(stream, lo, lo + 1000),
+            pressure=Pressure(
+                t=pressure.t[(pressure.t >= lo) & (pressure.t < lo + 1000)],
+                hpa=pressure.hpa[(pressure.t >= lo) & (pressure.t < lo + 1000)],
+            ),
+        )
+    # the steps arrive after all the radio: every one of them is late
+    got += live.push(steps=steps) + live.flush()
+    assert [kinds(w) for w in got] == [kinds(w) for w in expected]
+    assert sum(len(w.steps) for w in got) == len(steps)

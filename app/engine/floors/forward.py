@@ -76,7 +76,8 @@ def forward_step(belief: np.ndarray, T: np.ndarray, windows: int, loglik: np.nda
         ln p(readings | floor), up to a constant.
     """
     # π = b Tⁿ
-    prior = belief @ np.linalg.matrix_power(T, max(int(windows), 1))
+    windows = max(int(windows), 1)
+    prior = belief @ (T if windows == 1 else np.linalg.matrix_power(T, windows))
     # b' ∝ π ⊙ exp(ln L - max ln L)
     post = prior * np.exp(loglik - np.max(loglik))
     total = post.sum()
@@ -113,6 +114,7 @@ class FloorFilter:
         self.pos = int(state.get("pos", 0))
         self.pressure = PressureHistory(state)
         self.current = int(state.get("current", -1))
+        self._flat_T: dict[float, np.ndarray] = {}
 
     def snapshot(self) -> dict[str, Any]:
         """Return the belief, the recently heard floors and the pressure history."""
@@ -125,6 +127,17 @@ class FloorFilter:
             **self.pressure.snapshot(),
             "current": self.current,
         }
+
+    def _transition(self, eps: float, climb: float) -> np.ndarray:
+        """Return ``transition_matrix`` for this window; kept per ε while nothing is climbed."""
+        p = self.params
+        if abs(climb) >= p.climb_min_m:
+            return transition_matrix(self.levels, eps, climb, p.climb_switch_prob, p.climb_min_m)
+        T = self._flat_T.get(eps)
+        if T is None:
+            T = transition_matrix(self.levels, eps, 0.0, p.climb_switch_prob, p.climb_min_m)
+            self._flat_T[eps] = T
+        return T
 
     def update(self, window: FloorWindow) -> np.ndarray:
         """Add one window and return the active floors, the chosen floor first.
@@ -145,7 +158,7 @@ class FloorFilter:
         barometer, climb = self.pressure.update(t, window.pressure_hpa, p)
         # with a barometer, floors change only in the direction of a climb
         eps = p.flat_switch_prob if barometer else p.switch_prob
-        T = transition_matrix(self.levels, eps, climb, p.climb_switch_prob, p.climb_min_m)
+        T = self._transition(eps, climb)
         # windows since the previous update: a gap lets the belief relax towards uniform
         windows = 1 if self.last_t == NEVER else max((t - self.last_t) // p.window_ms, 1)
         self.belief = forward_step(self.belief, T, windows, loglik)

@@ -54,9 +54,11 @@ class PressureHistory:
         if pressure_hpa is not None and len(pressure_hpa):
             self.t = np.append(self.t, t)
             self.hpa = np.append(self.hpa, float(np.mean(pressure_hpa)))
-        if self.t.size:
-            recent = self.t >= t - params.climb_window_ms
-            self.t, self.hpa = self.t[recent], self.hpa[recent]
+        if not self.t.size:
+            # no barometer heard: what ``pressure_climb`` says of no readings
+            return False, 0.0
+        recent = self.t >= t - params.climb_window_ms
+        self.t, self.hpa = self.t[recent], self.hpa[recent]
         return pressure_climb(self.t, self.hpa, t, params)
 
     def snapshot(self) -> dict[str, Any]:
