@@ -129,6 +129,24 @@ def test_the_radius_is_scaled_then_floored_as_the_build_calibrated_it() -> None:
     assert last_accuracy(replace(wide, radius_scale=1e-6)) == pytest.approx(0.1)
 
 
+def test_the_match_factor_follows_the_scans_with_its_time_constant() -> None:
+    params = HmmParams(radius_match_tau_s=30.0)
+    tracker = HmmTracker(EmissionModel([corridor(0, (0, 1))], params), params)
+    # the first scan sets it
+    tracker._follow_match(5000, 2.0)
+    assert tracker.match == 2.0
+    tracker.t_scan = 5000
+    # 30 s later a scan matching at 4 moves it 1 - 1/e of the way there
+    tracker._follow_match(35_000, 4.0)
+    assert tracker.match == pytest.approx(2.0 + (1.0 - np.exp(-1.0)) * 2.0)
+    without = HmmTracker(
+        EmissionModel([corridor(0, (0, 1))], params), replace(params, radius_match_tau_s=0.0)
+    )
+    without.t_scan = 5000
+    without._follow_match(6000, 4.0)
+    assert without.match == 4.0
+
+
 def test_the_floor_is_the_one_whose_map_explains_the_scan() -> None:
     model = EmissionModel([corridor(0, (0, 1)), corridor(1, (2, 3))], HmmParams())
     tracker = HmmTracker(model, HmmParams())

@@ -278,7 +278,7 @@ class HmmTracker:
         else:
             self._update(t, ll[self.map], tx, rssi)
         self.fix_var = self._fix_variance(tx, rssi)
-        self.match = self._match_factor(tx, rssi)
+        self._follow_match(t, self._match_factor(tx, rssi))
         self._learn_offset(tx, rssi)
         self.t_scan = t
         out.append(self._estimate(t))
@@ -319,6 +319,21 @@ class HmmTracker:
         # o = Σ m_k / (n + n₀), within ±o_max
         shrunk = self.offset_sum / (self.offset_scans + p.offset_prior_scans)
         self.rssi_offset = min(max(shrunk, -p.offset_max_db), p.offset_max_db)
+
+    def _follow_match(self, t: int, match: float) -> None:
+        """Move the radius's match factor towards this scan's by how long since the last scan.
+
+        A walk whose scans keep matching the survey poorly is off the surveyed
+        paths or heard by an unusual phone for a while, not for one scan: the
+        factor follows the scans with time constant ``radius_match_tau_s``.
+        """
+        tau = self.params.radius_match_tau_s
+        if self.t_scan < 0 or tau <= 0:
+            self.match = match
+            return
+        # m̄ ← m̄ + (1 - e^(-Δt/τ)) (m - m̄)
+        gain = 1.0 - math.exp(-max(t - self.t_scan, 0) / 1000.0 / tau)
+        self.match += gain * (match - self.match)
 
     def _match_factor(self, tx: np.ndarray, rssi: np.ndarray) -> float:
         """Return the scan's best match on the tracked floor relative to a typical one.
@@ -412,7 +427,7 @@ class HmmTracker:
         # the radius's spread: the tempered posterior's, the steps' since the scan and the
         # per-scan k-NN's disagreement with the posterior,
         var += float(np.trace(self.cov)) / 2.0 + self.fix_var
-        # scaled by how well the last scan matched the survey
+        # scaled by how well the last scans matched the survey
         radius = max(p.min_accuracy_m, R68_SIGMAS_2D * np.sqrt(var) * self.match)
         # r' = max(r_min, sqrt((s r)² + f²)): the build's calibration of the radius
         accuracy = max(
