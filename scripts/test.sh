@@ -8,8 +8,8 @@ cd "$(dirname "$0")/.."
 python3 -m venv .venv
 .venv/bin/pip install --quiet --upgrade pip
 .venv/bin/pip install --quiet -e '.[dev]'
-.venv/bin/ruff check app tests bench
-.venv/bin/ruff format --check app tests bench
+.venv/bin/ruff check app tests bench migrations
+.venv/bin/ruff format --check app tests bench migrations
 .venv/bin/mypy
 # The dashboard's browser test drives Debian's Chromium (Playwright downloads no browser).
 if ! command -v chromium >/dev/null; then

@@ -23,7 +23,9 @@ def upgrade() -> None:
     tracks = sa.table("tracks", sa.column("created_at"), sa.column("updated_at"))
     op.get_bind().execute(tracks.update().values(updated_at=tracks.c.created_at))
     with op.batch_alter_table("tracks", schema=None) as batch_op:
-        batch_op.alter_column("updated_at", existing_type=sa.DateTime(timezone=True), nullable=False)
+        batch_op.alter_column(
+            "updated_at", existing_type=sa.DateTime(timezone=True), nullable=False
+        )
         batch_op.create_index(batch_op.f("ix_tracks_status"), ["status"], unique=False)
     with op.batch_alter_table("radiomap_jobs", schema=None) as batch_op:
         batch_op.create_index(batch_op.f("ix_radiomap_jobs_status"), ["status"], unique=False)

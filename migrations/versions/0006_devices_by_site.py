@@ -65,9 +65,7 @@ def upgrade() -> None:
     ).group_by(_positions.c.site_id, _positions.c.device_id)
     for site_id, device_id, seen, t in connection.execute(heard):
         known[(site_id, device_id)] = (int(seen), int(t))
-    snapshots = sa.select(
-        _states.c.site_id, _states.c.device_id, _states.c.updated_at, _states.c.t
-    )
+    snapshots = sa.select(_states.c.site_id, _states.c.device_id, _states.c.updated_at, _states.c.t)
     for site_id, device_id, updated_at, t in connection.execute(snapshots):
         seen, last_t = known.get((site_id, device_id), (0, -1))
         known[(site_id, device_id)] = (max(seen, _epoch_ms(updated_at)), max(last_t, int(t)))
