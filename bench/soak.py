@@ -2,10 +2,11 @@
 
     python bench/soak.py --devices 500 --minutes 30 --workers 2
 
-Prints the resident memory (API + workers, MB, and each process's) every
-``--every`` seconds, the request rate and latency of each interval, and the
-memory trend (MB/hour, least-squares slope over the second half of the run,
-after warm-up) of the whole and of each process, so a growth can be placed.
+Prints the resident memory (the API and its child processes, MB, and each
+one's) every ``--every`` seconds, the request rate and latency of each
+interval, and the memory trend (MB/hour, least-squares slope over the second
+half of the run, after warm-up) of the whole and of each process, so a growth
+can be placed.
 """
 
 from __future__ import annotations
