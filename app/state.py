@@ -19,6 +19,7 @@ from starlette.requests import HTTPConnection
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
 from app.core.errors import Unavailable
+from app.core.heap import trim_allocator
 from app.core.metrics import Metrics
 from app.keys.cache import KeyCache
 from app.keys.revocation import Revocations
@@ -46,6 +47,7 @@ class AppState:
     revocations: Revocations
     job_leases: asyncio.Task[None] | None = None
     revocation_poll: asyncio.Task[None] | None = None
+    heap_trims: asyncio.Task[None] | None = None
 
     @classmethod
     async def open(cls, settings: Settings) -> AppState:
@@ -81,6 +83,8 @@ class AppState:
         await state.tend_jobs()
         state.job_leases = asyncio.create_task(state._keep_jobs())
         state.revocation_poll = asyncio.create_task(state.revocations.run())
+        if settings.heap_trim_every_s:
+            state.heap_trims = asyncio.create_task(state._trim_heap())
         return state
 
     async def tend_jobs(self) -> None:
@@ -98,10 +102,15 @@ class AppState:
             await asyncio.sleep(self.settings.job_lease_s / 3)
             await self.tend_jobs()
 
+    async def _trim_heap(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.heap_trim_every_s)
+            trim_allocator()
+
     async def close(self) -> None:
         """Stop the job leases, the revocation poll, the track fits and the workers (they
         snapshot their devices); close the database."""
-        for task in (self.job_leases, self.revocation_poll):
+        for task in (self.job_leases, self.revocation_poll, self.heap_trims):
             if task is not None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):

@@ -1,9 +1,14 @@
-"""A started process's objects are kept out of the collector's full passes."""
+"""A started process's objects are kept out of the collector's full passes; free pages go back."""
 
 from __future__ import annotations
 
+import ctypes.util
 import gc
+import subprocess
+import sys
 import weakref
+
+import pytest
 
 from app.core.heap import settle_heap
 
@@ -30,3 +35,43 @@ def test_objects_alive_at_start_are_frozen_and_later_ones_still_collected() -> N
         assert alive() is None
     finally:
         gc.unfreeze()
+
+
+_FREED_BETWEEN_LIVE_CHUNKS = """
+import ctypes, ctypes.util
+from app.core.heap import trim_allocator
+
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+libc.memset.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_size_t]
+
+def resident_mb():
+    return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
+
+blocks, pins = [], []
+for _ in range(2000):  # 100 MB in 50 KB chunks, below the size glibc maps on its own
+    p = libc.malloc(50_000)
+    libc.memset(p, 1, 50_000)
+    blocks.append(p)
+    pins.append(libc.malloc(64))  # live chunks between them: free() cannot give them back
+for p in blocks:
+    libc.free(p)
+before = resident_mb()
+assert trim_allocator()
+print(before - resident_mb())
+"""
+
+
+@pytest.mark.skipif(
+    ctypes.util.find_library("c") is None or sys.platform != "linux", reason="glibc's allocator"
+)
+def test_trimming_returns_freed_pages_that_live_chunks_hold_in_the_heap() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", _FREED_BETWEEN_LIVE_CHUNKS],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    released_mb = float(out.stdout)
+    assert released_mb > 60.0
