@@ -5,7 +5,8 @@ radio maps through the API (split by walk, never by sample; the build chooses
 the site's k-NN constants from those surveys alone). Every fit is then the
 server's own: the body a device would upload goes through the service that
 turns a ``POST /v1/tracks`` into a pool job (on the server's database,
-nothing stored) and through the very function the pool runs (``run_fit``).
+nothing stored) and through the fit the pool runs (``run_fit``, which its
+processes call before returning their free pages).
 
 For every held-out walk the dead-reckoned track is built from the walk's own
 IMU with the engine's PDR (steps with Weinberg length and rotation-vector

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from app.core.heap import trim_allocator
 from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap
 from app.engine.scan_knn import ReferenceScans, ScanKnnParams
@@ -89,6 +90,19 @@ def _points(times: list[int], xy: np.ndarray) -> list[dict[str, Any]]:
         {"t": int(t), "x": round(float(x), 3), "y": round(float(y), 3)}
         for t, (x, y) in zip(times, xy, strict=False)
     ]
+
+
+def fit_in_pool(job: dict[str, Any]) -> dict[str, Any]:
+    """Run one fit in a pool process, then return the allocator's free pages to the system.
+
+    A fit's arrays leave their pages with the allocator: after fits of 50 to
+    300 links on site1's largest floor a process held 181-232 MB, 150-152 MB
+    once trimmed, and the pool's processes live as long as the server.
+    """
+    try:
+        return run_fit(job)
+    finally:
+        trim_allocator()
 
 
 def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from app.core.jobs import tend_jobs
 from app.core.time import now_ms, utcnow
 from app.devices.service import touch_devices
 from app.positions.service import store as store_positions
-from app.tracks.fitting import run_fit
+from app.tracks.fitting import fit_in_pool
 from app.tracks.models import Track
 
 FIT_FIELDS = (
@@ -103,7 +103,7 @@ class TrackFitter:
             "time_limit_s": self.settings.trackfit_time_limit_s,
         }
         await asyncio.to_thread(self._set_status, track_id, "running")
-        result = await asyncio.get_running_loop().run_in_executor(self.pool, run_fit, job)
+        result = await asyncio.get_running_loop().run_in_executor(self.pool, fit_in_pool, job)
         position = await asyncio.to_thread(self._finish, track_id, result)
         if position is not None and self.publish is not None:
             self.publish([position])
