@@ -22,7 +22,7 @@ def settle_heap() -> None:
 
 
 def _malloc_trim() -> Callable[[int], int] | None:
-    """Return glibc's ``malloc_trim``, or None where the C library has none (musl, macOS)."""
+    """Return glibc's ``malloc_trim``, or None where the C library has none (macOS's, for one)."""
     name = ctypes.util.find_library("c")
     if name is None:
         return None
@@ -41,7 +41,7 @@ def trim_allocator() -> bool:
     glibc keeps the pages of freed chunks mapped and resident: a process whose
     requests allocate and free arrays, SQLite pages and buffers of many sizes
     holds ever more of them. Under 1,235 devices at 1 Hz a worker that never
-    trimmed held 404-424 MB and grew; trimmed every minute, 292-302 MB, flat.
+    trimmed held 400-424 MB and grew; trimmed every minute, 292-302 MB, flat.
     """
     if _TRIM is None:
         return False
