@@ -27,6 +27,7 @@ from app.core.openapi import json_body
 from app.core.sample_policy import report, validate_screened
 from app.core.security import Principal
 from app.ingest import flows, service
+from app.ingest.bulk import bulk_items
 from app.ingest.route import IngestRoute
 from app.ingest.schemas import (
     BulkAnswer,
@@ -158,15 +159,14 @@ async def ingest_bulk(
     state = app_state(request)
     runtime = runtime_of(state)
     raw = await _read_body(request, state.settings.bulk_max_body_bytes)
-    items = service.bulk_items(raw, state.settings)
+    items = bulk_items(raw, state.settings)
 
-    async def one(item: Any) -> dict[str, Any]:
+    async def one(item: bytes | str) -> dict[str, Any]:
         try:
-            body = json.dumps(item, separators=(",", ":"))
-            if len(body) > state.settings.max_body_bytes:
+            if len(item) > state.settings.max_body_bytes:
                 raise TooLarge(f"batch larger than {state.settings.max_body_bytes} bytes")
             result = await _ingest_one(
-                body, principal=principal, state=state, runtime=runtime, wait=wait
+                item, principal=principal, state=state, runtime=runtime, wait=wait
             )
         except (ApiError, DomainError) as exc:
             return _refusal(exc)

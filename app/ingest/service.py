@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from pydantic import ValidationError
 
 from app.core.config import Settings
-from app.core.errors import Forbidden, Invalid, NotFound, TooLarge, not_json, validation_failed
+from app.core.errors import Forbidden, Invalid, NotFound, TooLarge, validation_failed
 from app.core.sample_policy import body_indices, validate_screened
 from app.core.security import Principal
 from app.core.time import now_ms
@@ -126,42 +125,3 @@ def sightings_by_tag(batch: LocatorBatch) -> dict[str, list[dict[str, Any]]]:
             {"t": s.t, "locator_id": batch.locator_id, "rssi": s.rssi}
         )
     return by_tag
-
-
-def bulk_items(raw: bytes, settings: Settings) -> list[Any]:
-    """Return the batches of a bulk body, each still unchecked; refuse the body whole when its
-    own structure is wrong (not JSON, no ``batches`` list, other keys) or it is too large."""
-    try:
-        body = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise not_json(str(exc)) from exc
-    if not isinstance(body, dict) or not isinstance(body.get("batches"), list):
-        raise Invalid(
-            'the body must be an object {"batches": [<ingest body>, ...]}',
-            details=[{"loc": ["body", "batches"], "type": "missing_list"}],
-        )
-    extra = sorted(set(body) - {"batches"})
-    if extra:
-        raise Invalid(
-            f"unknown fields in the body: {', '.join(extra)}",
-            details=[{"loc": ["body", k], "type": "extra_forbidden"} for k in extra],
-        )
-    batches: list[Any] = body["batches"]
-    if not batches:
-        raise Invalid("batches is empty; send at least one ingest body")
-    if len(batches) > settings.bulk_max_batches:
-        raise TooLarge(
-            f"{len(batches)} batches in one body; the limit is {settings.bulk_max_batches}"
-        )
-    samples = sum(
-        len(b[kind])
-        for b in batches
-        if isinstance(b, dict)
-        for kind in SAMPLE_KINDS
-        if isinstance(b.get(kind), list)
-    )
-    if samples > settings.bulk_max_samples:
-        raise TooLarge(
-            f"{samples} samples in one bulk body; the limit is {settings.bulk_max_samples}"
-        )
-    return batches

@@ -125,6 +125,8 @@ def _samples(n: int, site: str) -> dict[str, Any]:
     ("name", "body", "status", "says"),
     [
         ("not JSON", b"{batches", 400, "not valid JSON"),
+        ("not UTF-8", b'{"batches": [{"device_id": "\xff"}]}', 400, "not valid JSON"),
+        ("an array cut short", b"[{}, ", 400, "not valid JSON"),
         ("no batches", json.dumps({"batch": []}).encode(), 422, '{"batches"'),
         ("batches not a list", json.dumps({"batches": {}}).encode(), 422, '{"batches"'),
         ("a list, not an object", json.dumps([{}]).encode(), 422, '{"batches"'),
@@ -164,3 +166,30 @@ def test_unknown_query_parameters_are_refused(
     body = {"batches": [batch(site_id, f"{site_id}-q")]}
     r = client.post("/v1/ingest/bulk?wiat=true", json=body, headers=admin)
     assert r.status_code == 422 and "wiat" in r.json()["error"]["message"]
+
+
+def test_each_batch_is_validated_from_the_bytes_the_client_sent(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    # pretty-printed, with a NaN literal (the json module reads it; msgspec does not) in one
+    # batch and a sample list that is not a list in another: each answered as the single
+    # ingest answers it, the NaN reading dropped, the others kept
+    nan = batch(site_id, f"{site_id}-nan")
+    nan["wifi"][1]["rssi"] = float("nan")
+    odd = batch(site_id, f"{site_id}-odd") | {"ble": "none"}
+    fine = batch(site_id, f"{site_id}-fine")
+    headers = admin | {"content-type": "application/json"}
+    for body in (
+        json.dumps({"batches": [fine, odd]}, indent=2),
+        json.dumps({"batches": [fine, odd, nan]}, indent=2),
+    ):
+        r = client.post("/v1/ingest/bulk", content=body.encode(), headers=headers)
+        assert r.status_code == 202, r.text
+        results = r.json()["results"]
+        assert results[0]["accepted"] == 9
+        single = client.post("/v1/ingest", content=json.dumps(odd), headers=headers).json()
+        assert results[1]["status"] == 422
+        assert results[1]["error"] == single["error"]
+    assert results[2]["accepted"] == 8
+    dropped = results[2]["dropped"][0]
+    assert (dropped["kind"], dropped["index"], dropped["field"]) == ("wifi", 1, "rssi")
