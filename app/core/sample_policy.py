@@ -246,10 +246,15 @@ def screen_times(
     Raise Invalid when the times are in another unit, or an item of ``anchors`` is that far.
     ``earlier`` are the drops before, for the samples' body indices.
     """
-    times = {k: [s.t for s in getattr(body, k)] for k in (*anchors, *kinds)}
-    every = [t for ts in times.values() for t in ts]
+    every = [s.t for k in (*anchors, *kinds) for s in getattr(body, k)]
     if not every:
         return body, []
+    lo, hi = min(every), max(every)
+    if hi - lo <= max_offset_ms and MIN_T_MS <= lo and hi < MAX_T_MS:
+        # the usual body: the median lies between the extremes, so nothing is far from it,
+        # and it is in milliseconds as they are (a sixth of the time of the full check)
+        return body, []
+    times = {k: [s.t for s in getattr(body, k)] for k in (*anchors, *kinds)}
     median = _median(every)
     _check_unit(median)
     far = {
