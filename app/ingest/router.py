@@ -8,7 +8,6 @@ the single ingest answers it.
 from __future__ import annotations
 
 import asyncio
-import json
 from typing import Any
 
 import msgspec
@@ -247,7 +246,7 @@ async def ingest_socket(websocket: WebSocket, wait: bool = False) -> None:
                 result = await _ingest_one(
                     raw, principal=principal, state=state, runtime=runtime, wait=wait
                 )
-                await websocket.send_text(json.dumps(result))
+                await websocket.send_text(msgspec.json.encode(result).decode())
             except (ApiError, DomainError) as exc:
                 await websocket.send_json(_refusal(exc))
     except WebSocketDisconnect:
