@@ -198,6 +198,10 @@ class DeviceSession:
         self.unflushed = False
         return [] if self.tracker is None else self.tracker.flush()
 
+    def filter_flushed(self) -> None:
+        """Note that the filter's shared engine flushed this device with others."""
+        self.unflushed = False
+
     # -- estimates out -------------------------------------------------------------------
 
     def emit(

@@ -268,9 +268,11 @@ class Shard:
         results: list[Emitted] = []
         rows: list[Position] = []
         work = [(d, self._take(d, flush=True)) for d in devices]
-        for (device, _), estimates in zip(work, self._run(work), strict=True):
-            # silence ends a recording: position its last, incomplete window too
-            estimates = estimates + device.flush_filter()
+        ran = self._run(work)
+        # silence ends a recording: position its last, incomplete window too
+        held = self._flush_filters(devices)
+        for device, estimates, last in zip(devices, ran, held, strict=True):
+            estimates = estimates + last
             positions, events = self._emit(device, estimates, now)
             rows.extend(positions)
             if positions or events:
@@ -284,6 +286,25 @@ class Shard:
                 )
         self.counters["positions"] += len(rows)
         return results, rows
+
+    def _flush_filters(self, devices: list[DeviceSession]) -> list[list[Estimate]]:
+        """Return what each device's filter still holds back, the devices of a shared engine
+        flushed in one engine call (one call per device took 45% of a worker's time once
+        5,000 devices waited longer than ``flush_after_s`` between their batches)."""
+        held: list[list[Estimate]] = [[] for _ in devices]
+        together: dict[int, tuple[BatchEngine, list[int]]] = {}
+        for i, device in enumerate(devices):
+            engine = None if device.tracker is None else device.tracker.shared_engine
+            if engine is None:
+                held[i] = device.flush_filter()
+            else:
+                together.setdefault(id(engine), (engine, []))[1].append(i)
+        for engine, rows in together.values():
+            estimates = engine.flush([devices[i].device_id for i in rows])
+            for i in rows:
+                devices[i].filter_flushed()
+                held[i] = estimates[devices[i].device_id]
+        return held
 
     def _store_flushed(self, rows: list[Position], snaps: list[Snapshot], what: str) -> None:
         """Store flushed positions and snapshots, through an outage."""

@@ -158,6 +158,10 @@ class BatchEngine(Protocol):
         """Consume one time-ordered batch per device; return each device's new estimates."""
         ...
 
+    def flush(self, device_ids: list[str]) -> dict[str, list[Estimate]]:
+        """Position the devices' last, incomplete windows; return each device's estimates."""
+        ...
+
 
 class DeviceTracker(Tracker, Protocol):
     """A device's filter as a shard holds it.

@@ -150,6 +150,49 @@ def test_silence_on_the_shard_clock_flushes_a_device_then_evicts_it(
     assert stored is not None, "evicting stored the device's snapshot under its site"
 
 
+def test_devices_gone_quiet_together_are_flushed_in_one_call_of_their_shared_engine(
+    shard: Shard, office: LoadedSite, clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    walker, other = _id("walker"), _id("other")
+    mine = per_second(ble_scans(8))
+    theirs = per_second(ble_scans(8, OTHER_ROUTE, seed=2))
+    results = []
+    for a, b in zip(mine, theirs, strict=True):
+        results += shard.handle(
+            [_message(office, walker, "ble", a), _message(office, other, "ble", b)]
+        )
+        clock.advance(1.0)
+    pf = shard.sites.engines[SITE_ID].pf
+    calls: list[list[str]] = []
+    flush = pf.flush
+
+    def counted(device_ids: list[str]) -> Any:
+        calls.append(list(device_ids))
+        return flush(device_ids)
+
+    monkeypatch.setattr(pf, "flush", counted)
+    clock.advance(1.5)  # both silent for flush_after_s
+    results += shard.tick()
+
+    assert calls == [[walker, other]]
+    assert not any(d.pending for d in shard.devices.values())
+    # each device's positions, the flushed last window included, as it would get alone
+    for device_id, uploads in ((walker, mine), (other, theirs)):
+        alone = SiteEngines.for_site(office)
+        session = DeviceSession(device_id=device_id, engines=alone, now=T0)
+        expected = []
+        for k, samples in enumerate(uploads):
+            session.add({"ble": samples}, now=T0)
+            batch, _ = session.take(reorder_ms=2000, flush=k == len(uploads) - 1)
+            if batch is not None:
+                assert session.tracker is not None
+                expected += session.emit(session.tracker.process(batch), now=T0)[0]
+        expected += session.emit(session.flush_filter(), now=T0)[0]
+        flushed = [{k: v for k, v in public(p).items() if k != "computed_at"} for p in expected]
+        assert [p["t"] for p in flushed][-3:] == [T0 + 1000 * k + 90 for k in (5, 6, 7)]
+        assert _positions(results, device_id) == flushed
+
+
 def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_go(
     shard: Shard, office: LoadedSite, office_sessions: sessionmaker[Session]
 ) -> None:
