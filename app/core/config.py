@@ -219,6 +219,15 @@ class Settings(BaseSettings):
         "than the usual 1 s upload period with its jitter, so a device that keeps uploading "
         "is never flushed between two batches.",
     )
+    flush_after_periods: float = Field(
+        default=2.5,
+        ge=0,
+        le=100,
+        description="Nor is a device flushed within this many of its own upload periods (the "
+        "smoothed gap between its batches' arrivals): a tag that uploads every 10 s, or a "
+        "device whose answers come late under load, keeps uploading between its batches. "
+        "0 flushes after flush_after_s whatever the device's period.",
+    )
     idle_evict_s: float = Field(
         default=300.0,
         gt=0,

@@ -73,6 +73,10 @@ def _key(kind: str, sample: Sample) -> int:
     return hash((kind, repr(sample)))
 
 
+PERIOD_GAIN = 0.25
+"""Weight of the newest gap between two batches' arrivals in a device's upload period."""
+
+
 class DeviceSession:
     """A device's live state: samples wait in a reorder window, then feed its filter.
 
@@ -109,6 +113,8 @@ class DeviceSession:
         self.consumed = 0
         self.covered = 0
         self.last_seen = now
+        self.arrived = -1
+        self.period_ms = 0.0
         self.emitted_t = -1
         self.smoothed_t = -1
         self.unflushed = False
@@ -149,8 +155,17 @@ class DeviceSession:
                 self.buffer.append((t, kind, sample))
                 self.max_t = max(self.max_t, t)
                 accepted += 1
-        self.last_seen = now
+        if self.arrived >= 0:
+            # the upload period: the gaps between arrivals, smoothed
+            gap = now - self.arrived
+            self.period_ms += PERIOD_GAIN * (gap - self.period_ms) if self.period_ms else gap
+        self.arrived = self.last_seen = now
         return accepted, late, duplicate
+
+    def quiet_after_ms(self, flush_ms: float, periods: float) -> float:
+        """Return the wall time (ms) of silence after which the device counts as quiet:
+        ``flush_ms``, or ``periods`` of its upload period when that is longer."""
+        return max(flush_ms, periods * self.period_ms)
 
     def take(self, *, reorder_ms: int, flush: bool) -> tuple[Batch | None, Skipped]:
         """Release what is older than the reorder window (all of it on flush) as engine arrays.

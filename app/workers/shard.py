@@ -321,6 +321,9 @@ class Shard:
         """Flush quiet devices' buffers and filters and snapshot them; evict idle devices
         (with a snapshot).
 
+        A device is quiet after ``flush_after_s`` of silence, or ``flush_after_periods``
+        of its own upload period when that is longer.
+
         Does nothing within ``silence_scan_every_ms`` of the last scan, unless buffers are
         to be flushed at once (``flush_after_s`` 0).
         """
@@ -332,7 +335,12 @@ class Shard:
         self._scanned_at = now
         flush_ms = self.settings.flush_after_s * 1000
         evict_ms = self.settings.idle_evict_s * 1000
-        quiet = [d for d in self.devices.values() if d.pending and now - d.last_seen >= flush_ms]
+        periods = self.settings.flush_after_periods
+        quiet = [
+            d
+            for d in self.devices.values()
+            if d.pending and now - d.last_seen >= d.quiet_after_ms(flush_ms, periods)
+        ]
         idle = [d for d in self.devices.values() if not d.pending and now - d.last_seen >= evict_ms]
         if not quiet and not idle:
             return []

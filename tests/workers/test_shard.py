@@ -193,6 +193,26 @@ def test_devices_gone_quiet_together_are_flushed_in_one_call_of_their_shared_eng
         assert _positions(results, device_id) == flushed
 
 
+def test_a_device_uploading_slower_than_the_flush_time_is_flushed_after_its_own_periods(
+    shard: Shard, office: LoadedSite, clock: Clock
+) -> None:
+    tag = _id("tag")
+    scans = per_second(ble_scans(4))
+    for samples in scans:
+        shard.handle([_message(office, tag, "ble", samples)])
+        clock.advance(4.0)  # one upload every 4 s
+    device = shard.devices[(SITE_ID, tag)]
+    assert device.period_ms == pytest.approx(4000.0)
+    assert device.pending
+    # 4 s after its last upload, past flush_after_s: its next batch is still due
+    assert shard.tick() == [] and device.pending
+    clock.advance(6.0 - 0.1)  # just short of 2.5 periods (10 s)
+    assert shard.tick() == [] and device.pending
+    clock.advance(0.1)
+    assert _positions(shard.tick(), tag)
+    assert not device.pending
+
+
 def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_go(
     shard: Shard, office: LoadedSite, office_sessions: sessionmaker[Session]
 ) -> None:
