@@ -76,6 +76,10 @@ def _key(kind: str, sample: Sample) -> int:
 PERIOD_GAIN = 0.25
 """Weight of the newest gap between two batches' arrivals in a device's upload period."""
 
+PERIOD_JUMP = 4.0
+"""A gap counts for at most this many upload periods: a device that slows down for good
+is followed within a few batches, one pause barely moves the period."""
+
 
 class DeviceSession:
     """A device's live state: samples wait in a reorder window, then feed its filter.
@@ -156,9 +160,14 @@ class DeviceSession:
                 self.max_t = max(self.max_t, t)
                 accepted += 1
         if self.arrived >= 0:
-            # the upload period: the gaps between arrivals, smoothed
+            # the upload period: the gaps between arrivals, smoothed, one long pause
+            # (a device put away for a minute) counted as a few periods only
             gap = now - self.arrived
-            self.period_ms += PERIOD_GAIN * (gap - self.period_ms) if self.period_ms else gap
+            if self.period_ms:
+                gap = min(gap, PERIOD_JUMP * self.period_ms)
+                self.period_ms += PERIOD_GAIN * (gap - self.period_ms)
+            else:
+                self.period_ms = gap
         self.arrived = self.last_seen = now
         return accepted, late, duplicate
 

@@ -211,6 +211,10 @@ def test_a_device_uploading_slower_than_the_flush_time_is_flushed_after_its_own_
     clock.advance(0.1)
     assert _positions(shard.tick(), tag)
     assert not device.pending
+    # a pause of a minute moves the period by one gap of at most four periods
+    clock.advance(50.0)
+    shard.handle([_message(office, tag, "ble", per_second(ble_scans(6))[5])])
+    assert device.period_ms == pytest.approx(4000.0 + 0.25 * (16000.0 - 4000.0))
 
 
 def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_go(
