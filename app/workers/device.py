@@ -162,7 +162,7 @@ class DeviceSession:
         if self.arrived >= 0:
             # the upload period: the gaps between arrivals, smoothed, one long pause
             # (a device put away for a minute) counted as a few periods only
-            gap = now - self.arrived
+            gap = float(now - self.arrived)
             if self.period_ms:
                 gap = min(gap, PERIOD_JUMP * self.period_ms)
                 self.period_ms += PERIOD_GAIN * (gap - self.period_ms)

@@ -76,6 +76,24 @@ def _alone(engines: SiteEngines, device_id: str, kind: str, uploads: list[list[S
     return [{k: v for k, v in public(p).items() if k != "computed_at"} for p in out]
 
 
+def _two_phones(
+    shard: Shard, office: LoadedSite, seconds: int, clock: Clock | None = None
+) -> tuple[str, str, list[list[Sample]], list[list[Sample]], list[Done | Emitted]]:
+    """Send two phones' BLE scans, one message each a second (the clock advanced when given);
+    return their ids, uploads and the shard's results."""
+    walker, other = _id("walker"), _id("other")
+    mine = per_second(ble_scans(seconds))
+    theirs = per_second(ble_scans(seconds, OTHER_ROUTE, seed=2))
+    results: list[Done | Emitted] = []
+    for a, b in zip(mine, theirs, strict=True):
+        results += shard.handle(
+            [_message(office, walker, "ble", a), _message(office, other, "ble", b)]
+        )
+        if clock is not None:
+            clock.advance(1.0)
+    return walker, other, mine, theirs, results
+
+
 def test_interleaved_messages_reach_their_own_devices(
     shard: Shard, office: LoadedSite, engines: SiteEngines
 ) -> None:
@@ -97,14 +115,7 @@ def test_interleaved_messages_reach_their_own_devices(
 def test_devices_sharing_the_particle_filter_get_the_positions_each_would_get_alone(
     shard: Shard, office: LoadedSite
 ) -> None:
-    walker, other = _id("walker"), _id("other")
-    mine = per_second(ble_scans(12))
-    theirs = per_second(ble_scans(12, OTHER_ROUTE, seed=2))
-    results = []
-    for a, b in zip(mine, theirs, strict=True):
-        results += shard.handle(
-            [_message(office, walker, "ble", a), _message(office, other, "ble", b)]
-        )
+    walker, other, mine, theirs, results = _two_phones(shard, office, 12)
 
     kinds = {d.tracker.kind for d in shard.devices.values() if d.tracker is not None}
     assert kinds == {PF}
@@ -153,15 +164,7 @@ def test_silence_on_the_shard_clock_flushes_a_device_then_evicts_it(
 def test_devices_gone_quiet_together_are_flushed_in_one_call_of_their_shared_engine(
     shard: Shard, office: LoadedSite, clock: Clock, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    walker, other = _id("walker"), _id("other")
-    mine = per_second(ble_scans(8))
-    theirs = per_second(ble_scans(8, OTHER_ROUTE, seed=2))
-    results = []
-    for a, b in zip(mine, theirs, strict=True):
-        results += shard.handle(
-            [_message(office, walker, "ble", a), _message(office, other, "ble", b)]
-        )
-        clock.advance(1.0)
+    walker, other, mine, theirs, results = _two_phones(shard, office, 8, clock)
     pf = shard.sites.engines[SITE_ID].pf
     calls: list[list[str]] = []
     flush = pf.flush
