@@ -177,11 +177,11 @@ def test_each_batch_is_validated_from_the_bytes_the_client_sent(
     nan = batch(site_id, f"{site_id}-nan")
     nan["wifi"][1]["rssi"] = float("nan")
     odd = batch(site_id, f"{site_id}-odd") | {"ble": "none"}
-    fine = batch(site_id, f"{site_id}-fine")
     headers = admin | {"content-type": "application/json"}
+    # a device of its own per body: a second batch of the same samples would be late
     for body in (
-        json.dumps({"batches": [fine, odd]}, indent=2),
-        json.dumps({"batches": [fine, odd, nan]}, indent=2),
+        json.dumps({"batches": [batch(site_id, f"{site_id}-fine-1"), odd]}, indent=2),
+        json.dumps({"batches": [batch(site_id, f"{site_id}-fine-2"), odd, nan]}, indent=2),
     ):
         r = client.post("/v1/ingest/bulk", content=body.encode(), headers=headers)
         assert r.status_code == 202, r.text
