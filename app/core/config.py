@@ -273,7 +273,9 @@ class Settings(BaseSettings):
         default=10_000,
         ge=0,
         le=DAY_MS,
-        description="Measurement time between periodic device snapshots.",
+        description="Measurement time between a device's periodic snapshots, each device at "
+        "its own phase of the period so that devices started together do not store theirs "
+        "in the same round.",
     )
     zone_dwell_s: float = Field(
         default=2.0,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import zlib
 from typing import Any
 
 import shapely
@@ -292,6 +293,25 @@ class DeviceSession:
         } | _odometry(estimate)
 
     # -- lifecycle -----------------------------------------------------------------------
+
+    def snapshot_due(self, every_ms: int) -> bool:
+        """Return whether the device's state is due its periodic snapshot.
+
+        Once per ``every_ms`` of measurement time, when the processed time
+        crosses the device's own phase of that period (from its key, the same
+        in every worker): devices that started, or resumed after a restart,
+        in the same second spread their snapshots over the period instead of
+        storing them all in one round every ``every_ms``. A device never
+        stored is due at once.
+        """
+        if self.tracker is None or self.processed_t < 0:
+            return False
+        if self.snapshot_t < 0 or every_ms <= 0:
+            return True
+        site_id, device_id = self.key
+        phase = zlib.crc32(f"{site_id}/{device_id}".encode()) % every_ms
+        # slot(t) = ⌊(t + phase) / period⌋
+        return (self.processed_t + phase) // every_ms > (self.snapshot_t + phase) // every_ms
 
     def snapshot(self) -> dict[str, Any]:
         """Return everything needed to resume the device exactly, as snapshot data.

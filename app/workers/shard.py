@@ -379,9 +379,10 @@ class Shard:
     def _due_snapshots(self, devices: list[DeviceSession], *, force: bool) -> list[Snapshot]:
         """Return the snapshots of ``devices`` that are due (all of them with ``force``)."""
         snaps = []
+        every_ms = self.settings.snapshot_every_ms
         for device in devices:
-            due = device.processed_t - device.snapshot_t >= self.settings.snapshot_every_ms
-            if device.tracker is None or device.processed_t < 0 or not (force or due):
+            stored = device.tracker is not None and device.processed_t >= 0
+            if not stored or not (force or device.snapshot_due(every_ms)):
                 continue
             blob = snapshots.encode(device.snapshot())
             snaps.append((device, device.processed_t, device.consumed, blob))

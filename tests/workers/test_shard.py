@@ -314,3 +314,31 @@ def test_what_a_shard_answers_is_plain_data_the_brokers_carry_unchanged(
     )
     assert decode_results(encode(results)) == results
     assert decode_results(encode([shard.stats()])) == [shard.stats()]
+
+
+def test_devices_started_together_spread_their_periodic_snapshots_over_the_period(
+    shard: Shard, office: LoadedSite, settings: Settings, clock: Clock
+) -> None:
+    tags = [_id(f"tag{i}") for i in range(30)]
+    uploads = per_second(uwb_ranges(25))
+    stored_per_round = []
+    stored_at: dict[str, list[int]] = {tag: [] for tag in tags}
+    for samples in uploads:
+        before = shard.counters["snapshots"]
+        shard.handle([_message(office, tag, "uwb", samples) for tag in tags])
+        clock.advance(1.0)
+        stored_per_round.append(shard.counters["snapshots"] - before)
+        for device in shard.devices.values():
+            times = stored_at[device.device_id]
+            if device.snapshot_t >= 0 and device.snapshot_t not in times:
+                times.append(device.snapshot_t)
+
+    period = settings.snapshot_every_ms
+    first = next(i for i, n in enumerate(stored_per_round) if n)
+    assert stored_per_round[first] == len(tags), "a device is stored once it has a state"
+    # 3 a round on average; all 30 in one round every 10 s without the phases
+    assert max(stored_per_round[first + 1 :]) <= 10
+    for times in stored_at.values():
+        gaps = np.diff(times)
+        assert len(times) >= 3, "two periodic snapshots in 24 s of a 10 s period"
+        assert gaps[1:].min() >= period - 1000 and gaps.max() <= period
