@@ -319,7 +319,8 @@ def test_what_a_shard_answers_is_plain_data_the_brokers_carry_unchanged(
 def test_devices_started_together_spread_their_periodic_snapshots_over_the_period(
     shard: Shard, office: LoadedSite, settings: Settings, clock: Clock
 ) -> None:
-    tags = [_id(f"tag{i}") for i in range(30)]
+    # fixed ids, fixed phases: 1 to 5 a round after the first
+    tags = [f"spread-tag{i}" for i in range(30)]
     uploads = per_second(uwb_ranges(25))
     stored_per_round = []
     stored_at: dict[str, list[int]] = {tag: [] for tag in tags}
