@@ -70,7 +70,9 @@ def _run(shard: Shard, ledger: CoverageLedger[str], messages: list[Ingest]) -> l
 def test_a_batch_is_acknowledged_only_once_a_stored_snapshot_holds_it(
     settings: Settings, office_sessions: sessionmaker[Session], office: LoadedSite
 ) -> None:
-    messages = _messages(office, f"tag-{uuid.uuid4().hex[:8]}")
+    # a fixed id, so a fixed phase of the snapshot period: its last periodic snapshot falls
+    # before the walk's last batches
+    messages = _messages(office, "held-tag-a")
     shard = Shard(shard=0, settings=settings, sessions=office_sessions, clock=Clock())
     ledger: CoverageLedger[str] = CoverageLedger()
 
@@ -111,7 +113,9 @@ def test_the_next_worker_replays_what_was_not_acknowledged_and_stores_every_wind
     settings: Settings, office_sessions: sessionmaker[Session], office: LoadedSite
 ) -> None:
     clock = Clock()
-    reference, crashed = f"ref-{uuid.uuid4().hex[:8]}", f"crash-{uuid.uuid4().hex[:8]}"
+    # fixed ids, fixed phases of the snapshot period: the crashed device's last periodic
+    # snapshot falls before its worker dies
+    reference, crashed = "ref-walk", "crashed-walk-a"
     whole = Shard(shard=0, settings=settings, sessions=office_sessions, clock=clock)
     _run(whole, CoverageLedger(), _messages(office, reference))
     whole.drain()
@@ -151,7 +155,7 @@ def test_a_redis_worker_killed_mid_stream_leaves_its_held_entries_to_the_next(
 ) -> None:
     redis_client.flushdb()
     config = settings.model_copy(update={"broker": REDIS_URL, "shards": 1, "lease_s": 1.0})
-    device = f"redis-{uuid.uuid4().hex[:8]}"
+    device = "redis-walk-a"  # a fixed phase, as above
     messages = _messages(office, device)
     first = RedisWorker(config, name="first")
     first.sites.poll(wait=True)
