@@ -37,6 +37,24 @@ def test_objects_alive_at_start_are_frozen_and_later_ones_still_collected() -> N
         gc.unfreeze()
 
 
+def test_a_settled_process_still_collects_young_cycles_without_being_asked() -> None:
+    before = gc.get_threshold()
+    try:
+        settle_heap()
+        young = gc.get_threshold()[0]
+        later = _Node()
+        later.me = later
+        alive = weakref.ref(later)
+        del later
+        # more new container objects than the young generation's threshold
+        kept = [[] for _ in range(young + 1000)]
+        assert alive() is None, "the cycle went with the next young collection"
+        assert len(kept) > young
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*before)
+
+
 _FREED_BETWEEN_LIVE_CHUNKS = """
 import ctypes, ctypes.util
 from app.core.heap import trim_allocator

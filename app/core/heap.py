@@ -7,9 +7,19 @@ import ctypes.util
 import gc
 from collections.abc import Callable
 
+GC_THRESHOLDS = (50_000, 20, 10)
+"""The cyclic collector's thresholds in a running process: a young collection after 50,000
+new container objects instead of Python's 700. The API validates and forwards thousands of
+samples a second, each a few objects, all freed by reference counting. At Python's
+thresholds the API of a server carrying 5,000 devices' bulk bodies for 20 s (its whole run
+some 50 s) spent 13.6 s in 9,773 collections, up to 251 ms each, and carried 2,890
+updates/s; at these, 3.6 s in 96 collections, and 4,700 updates/s. Objects in reference
+cycles wait longer to be freed, never unboundedly."""
+
 
 def settle_heap() -> None:
-    """Collect, then move every object alive now out of the collector's reach.
+    """Collect, move every object alive now out of the collector's reach, and collect the
+    young generation less often (``GC_THRESHOLDS``).
 
     A process that has started holds hundreds of thousands of long-lived objects (the app
     alone 200,000; its modules, sites and caches), and each full collection walked them
@@ -19,6 +29,7 @@ def settle_heap() -> None:
     """
     gc.collect()
     gc.freeze()
+    gc.set_threshold(*GC_THRESHOLDS)
 
 
 def _malloc_trim() -> Callable[[int], int] | None:

@@ -32,6 +32,7 @@ import redis
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
+from app.core.heap import settle_heap
 from app.core.outages import is_outage, retry_through_outage
 from app.core.time import now_ms
 from app.workers.broker import ResultHandler
@@ -493,4 +494,6 @@ def redis_worker_main(settings_json: str) -> None:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    RedisWorker(settings).run(stop)
+    worker = RedisWorker(settings)
+    settle_heap()
+    worker.run(stop)
