@@ -74,9 +74,7 @@ def main() -> None:
         raise SystemExit(f"{CHROMIUM} is missing: `apt-get install chromium`")
     args.out.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=CHROMIUM, args=CHROMIUM_ARGS
-        )
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": 1440, "height": 860})
         page.goto(args.server + "/")
         page.fill("#key", args.key)

@@ -25,95 +25,101 @@ class Skipped:
 
 
 def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tuple[Batch, Skipped]:
-    """Return the engine batch (sorted by t within each kind) and what it left out."""
-    unknown = 0
-    max_age = site.tuning.wifi_max_age_ms
-    wifi = samples.get("wifi", ())
-    fresh = [s for s in wifi if reading_age(s) <= max_age]
-    t_rssi: list[int] = []
-    tx: list[int] = []
-    rssi: list[float] = []
-    for kind in ("wifi", "ble"):
-        items = fresh if kind == "wifi" else samples.get(kind, ())
-        times = wifi_times(items) if kind == "wifi" else [s["t"] for s in items]
-        for s, t in zip(items, times, strict=True):
-            row = site.transmitter_index.get(radio_id(s["id"]))
-            if row is None:
-                unknown += 1
-                continue
-            t_rssi.append(t)
-            tx.append(row)
-            rssi.append(s["rssi"])
-    t_seen: list[int] = []
-    locator: list[int] = []
-    seen_rssi: list[float] = []
-    for s in samples.get("sightings", ()):
-        row = site.locator_index.get(s["locator_id"])
-        if row is None:
-            unknown += 1
-            continue
-        t_seen.append(s["t"])
-        locator.append(row)
-        seen_rssi.append(s["rssi"])
-    imu = samples.get("imu", ())
-    ranges_t: list[int] = []
-    anchor: list[int] = []
-    dist: list[float] = []
-    std: list[float] = []
-    for s in samples.get("uwb", ()):
-        row = site.anchor_index.get(s["anchor"])
-        if row is None:
-            unknown += 1
-            continue
-        ranges_t.append(s["t"])
-        anchor.append(row)
-        dist.append(s["range"])
-        std.append(s.get("std") or np.nan)
-    fixes = [
-        s
-        for s in samples.get("uwb_fix", ())
-        if s.get("floor_id") is None or s["floor_id"] in site.floor_index
-    ]
-    unknown += len(samples.get("uwb_fix", ())) - len(fixes)
-    baro = samples.get("baro", ())
-    batch = Batch(
-        rssi=_sorted(
-            RssiReadings(np.array(t_rssi, np.int64), np.array(tx, np.int32), np.array(rssi, float))
-        ),
-        sightings=_sorted(
-            Sightings(
-                np.array(t_seen, np.int64),
-                np.array(locator, np.int32),
-                np.array(seen_rssi, float),
-            )
-        ),
-        imu=_sorted(imu_arrays(imu)),
-        ranges=_sorted(
-            Ranges(
-                np.array(ranges_t, np.int64),
-                np.array(anchor, np.int32),
-                np.array(dist, float),
-                np.array(std, float),
-            )
-        ),
-        fixes=_sorted(
-            Fixes(
-                np.array([s["t"] for s in fixes], np.int64),
-                np.array([[s["x"], s["y"], s.get("z", 0.0)] for s in fixes], float).reshape(-1, 3),
-                np.array(
-                    [site.floor_index.get(s.get("floor_id") or "", 0) for s in fixes], np.int32
-                ),
-                np.array([s.get("std") or 1.0 for s in fixes], float),
-            )
-        ),
-        pressure=_sorted(
+    """Return the engine batch (sorted by t within each kind) and what it left out.
+
+    Only the kinds present are converted: the others keep the batch's shared
+    empty arrays (a phone's batch holds two or three kinds of the six).
+    """
+    skipped = Skipped()
+    kinds: dict[str, Any] = {}
+    if samples.get("wifi") or samples.get("ble"):
+        kinds["rssi"] = _rssi(site, samples, skipped)
+    if samples.get("sightings"):
+        kinds["sightings"] = _sightings(site, samples["sightings"], skipped)
+    if samples.get("imu"):
+        kinds["imu"] = _sorted(imu_arrays(samples["imu"]))
+    if samples.get("uwb"):
+        kinds["ranges"] = _ranges(site, samples["uwb"], skipped)
+    if samples.get("uwb_fix"):
+        kinds["fixes"] = _fixes(site, samples["uwb_fix"], skipped)
+    if samples.get("baro"):
+        baro = samples["baro"]
+        kinds["pressure"] = _sorted(
             Pressure(
                 np.array([s["t"] for s in baro], np.int64),
                 np.array([s["hpa"] for s in baro], float),
             )
-        ),
+        )
+    return Batch(**kinds), skipped
+
+
+def _rssi(
+    site: LoadedSite, samples: dict[str, list[dict[str, Any]]], skipped: Skipped
+) -> RssiReadings:
+    """WiFi readings heard within the site's age limit, and BLE readings, of known ids."""
+    max_age = site.tuning.wifi_max_age_ms
+    wifi = samples.get("wifi", ())
+    fresh = [s for s in wifi if reading_age(s) <= max_age]
+    skipped.stale += len(wifi) - len(fresh)
+    t_rssi: list[int] = []
+    tx: list[int] = []
+    rssi: list[float] = []
+    index = site.transmitter_index
+    for kind in ("wifi", "ble"):
+        items = fresh if kind == "wifi" else samples.get(kind, ())
+        times = wifi_times(items) if kind == "wifi" else [s["t"] for s in items]
+        for s, t in zip(items, times, strict=True):
+            row = index.get(radio_id(s["id"]))
+            if row is None:
+                skipped.unknown_ids += 1
+                continue
+            t_rssi.append(t)
+            tx.append(row)
+            rssi.append(s["rssi"])
+    return _sorted(
+        RssiReadings(np.array(t_rssi, np.int64), np.array(tx, np.int32), np.array(rssi, float))
     )
-    return batch, Skipped(unknown_ids=unknown, stale=len(wifi) - len(fresh))
+
+
+def _sightings(site: LoadedSite, items: list[dict[str, Any]], skipped: Skipped) -> Sightings:
+    """Sightings by the site's locators."""
+    known = [s for s in items if s["locator_id"] in site.locator_index]
+    skipped.unknown_ids += len(items) - len(known)
+    return _sorted(
+        Sightings(
+            np.array([s["t"] for s in known], np.int64),
+            np.array([site.locator_index[s["locator_id"]] for s in known], np.int32),
+            np.array([s["rssi"] for s in known], float),
+        )
+    )
+
+
+def _ranges(site: LoadedSite, items: list[dict[str, Any]], skipped: Skipped) -> Ranges:
+    """Ranges to the site's anchors (NaN where a range carries no standard deviation)."""
+    known = [s for s in items if s["anchor"] in site.anchor_index]
+    skipped.unknown_ids += len(items) - len(known)
+    return _sorted(
+        Ranges(
+            np.array([s["t"] for s in known], np.int64),
+            np.array([site.anchor_index[s["anchor"]] for s in known], np.int32),
+            np.array([s["range"] for s in known], float),
+            np.array([s.get("std") or np.nan for s in known], float),
+        )
+    )
+
+
+def _fixes(site: LoadedSite, items: list[dict[str, Any]], skipped: Skipped) -> Fixes:
+    """Fixes on the site's floors, or on none named."""
+    known = [s for s in items if s.get("floor_id") is None or s["floor_id"] in site.floor_index]
+    skipped.unknown_ids += len(items) - len(known)
+    return _sorted(
+        Fixes(
+            np.array([s["t"] for s in known], np.int64),
+            np.array([[s["x"], s["y"], s.get("z", 0.0)] for s in known], float).reshape(-1, 3),
+            np.array([site.floor_index.get(s.get("floor_id") or "", 0) for s in known], np.int32),
+            np.array([s.get("std") or 1.0 for s in known], float),
+        )
+    )
 
 
 def _sorted(arrays: _A) -> _A:
