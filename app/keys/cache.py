@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterable
 
@@ -24,6 +25,7 @@ class KeyCache:
         self.ttl_s = ttl_s
         self.max_entries = max_entries
         self._entries: dict[str, tuple[float, Principal | Refusal]] = {}
+        self._lookups: dict[str, asyncio.Future[Principal | Refusal]] = {}
 
     def cached(self, key: str) -> Principal | Refusal | None:
         """Return the cached answer for the key without the database (None: not cached)."""
@@ -41,6 +43,27 @@ class KeyCache:
             self._entries.clear()
         self._entries[hash_key(key)] = (now, answer)
         return answer
+
+    async def lookup(self, key: str) -> Principal | Refusal:
+        """Return the key's answer, from the cache or else from one database read in a thread,
+        however many requests ask for the same key at once.
+
+        A cached key expires for every request in flight at the same moment: a
+        server that has fallen behind holds thousands of requests with the same
+        key, and each sent its own read of the same row to the thread pool and
+        the database.
+        """
+        answer = self.cached(key)
+        if answer is not None:
+            return answer
+        digest = hash_key(key)
+        pending = self._lookups.get(digest)
+        if pending is None:
+            pending = asyncio.ensure_future(asyncio.to_thread(self.resolve, key))
+            self._lookups[digest] = pending
+            pending.add_done_callback(lambda _: self._lookups.pop(digest, None))
+        # one caller giving up (its client gone) does not cancel the others' lookup
+        return await asyncio.shield(pending)
 
     def forget(self, hashes: Iterable[str]) -> None:
         """Drop the answers for these key hashes (the keys were revoked)."""

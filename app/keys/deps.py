@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import Depends, Request
-from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 
 from app.core.errors import ApiError, Forbidden
@@ -40,10 +39,7 @@ def presented_key(authorization: str | None, query_key: str | None = None) -> st
 
 async def resolve(connection: HTTPConnection, key: str) -> Principal:
     """Return the key's principal (cached, else from the database off the loop), or 401."""
-    keys = app_state(connection).keys
-    answer = keys.cached(key)
-    if answer is None:
-        answer = await run_in_threadpool(keys.resolve, key)
+    answer = await app_state(connection).keys.lookup(key)
     if isinstance(answer, Principal):
         return answer
     raise _unauthorized("this API key was revoked" if answer == "revoked" else "unknown API key")

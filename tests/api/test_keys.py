@@ -4,17 +4,21 @@ what is wrong."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import event
 from starlette.websockets import WebSocketDisconnect
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker, session_scope
+from app.core.security import Principal
 from app.keys.bootstrap import bootstrap_admin
+from app.keys.cache import KeyCache
 from app.keys.service import revoke_key
 from app.main import create_app
 from tests.conftest import ADMIN_KEY, migrated
@@ -150,3 +154,23 @@ def test_a_revoked_admin_key_given_by_environment_stops_the_start(
     with pytest.raises(ValueError, match="LOCUS_ADMIN_KEY names a revoked key"):
         bootstrap_admin(sessions=make_sessionmaker(engine), settings=settings)
     engine.dispose()
+
+
+def test_requests_that_find_a_key_expired_together_read_it_from_the_database_once(
+    new_database: Any,
+) -> None:
+    engine = make_engine(migrated(new_database()))
+    statements: list[str] = []
+    event.listen(engine, "before_cursor_execute", lambda *a: statements.append(a[2]))
+    cache = KeyCache(make_sessionmaker(engine), ttl_s=30.0, max_entries=100)
+
+    async def many_at_once() -> list[object]:
+        return await asyncio.gather(*(cache.lookup(ADMIN_KEY) for _ in range(50)))
+
+    answers = asyncio.run(many_at_once())
+    again = asyncio.run(many_at_once())
+    engine.dispose()
+
+    assert all(isinstance(a, Principal) and a.role == "admin" for a in answers + again)
+    # one key lookup for the hundred requests: the fifty waiting ones shared it
+    assert len([s for s in statements if "api_keys" in s]) == 1
