@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -44,12 +45,7 @@ def to_batch(site: LoadedSite, samples: dict[str, list[dict[str, Any]]]) -> tupl
         kinds["fixes"] = _fixes(site, samples["uwb_fix"], skipped)
     if samples.get("baro"):
         baro = samples["baro"]
-        kinds["pressure"] = _sorted(
-            Pressure(
-                np.array([s["t"] for s in baro], np.int64),
-                np.array([s["hpa"] for s in baro], float),
-            )
-        )
+        kinds["pressure"] = _sorted(Pressure(_times(baro), _floats(baro, "hpa")))
     return Batch(**kinds), skipped
 
 
@@ -83,43 +79,46 @@ def _rssi(
 
 def _sightings(site: LoadedSite, items: list[dict[str, Any]], skipped: Skipped) -> Sightings:
     """Sightings by the site's locators."""
-    known = [s for s in items if s["locator_id"] in site.locator_index]
-    skipped.unknown_ids += len(items) - len(known)
-    return _sorted(
-        Sightings(
-            np.array([s["t"] for s in known], np.int64),
-            np.array([site.locator_index[s["locator_id"]] for s in known], np.int32),
-            np.array([s["rssi"] for s in known], float),
-        )
-    )
+    index = site.locator_index
+    known = _known(items, lambda s: s["locator_id"] in index, skipped)
+    locator = np.array([index[s["locator_id"]] for s in known], np.int32)
+    return _sorted(Sightings(_times(known), locator, _floats(known, "rssi")))
 
 
 def _ranges(site: LoadedSite, items: list[dict[str, Any]], skipped: Skipped) -> Ranges:
     """Ranges to the site's anchors (NaN where a range carries no standard deviation)."""
-    known = [s for s in items if s["anchor"] in site.anchor_index]
-    skipped.unknown_ids += len(items) - len(known)
-    return _sorted(
-        Ranges(
-            np.array([s["t"] for s in known], np.int64),
-            np.array([site.anchor_index[s["anchor"]] for s in known], np.int32),
-            np.array([s["range"] for s in known], float),
-            np.array([s.get("std") or np.nan for s in known], float),
-        )
-    )
+    index = site.anchor_index
+    known = _known(items, lambda s: s["anchor"] in index, skipped)
+    anchor = np.array([index[s["anchor"]] for s in known], np.int32)
+    std = np.array([s.get("std") or np.nan for s in known], float)
+    return _sorted(Ranges(_times(known), anchor, _floats(known, "range"), std))
 
 
 def _fixes(site: LoadedSite, items: list[dict[str, Any]], skipped: Skipped) -> Fixes:
     """Fixes on the site's floors, or on none named."""
-    known = [s for s in items if s.get("floor_id") is None or s["floor_id"] in site.floor_index]
+    index = site.floor_index
+    known = _known(items, lambda s: s.get("floor_id") is None or s["floor_id"] in index, skipped)
+    xyz = np.array([[s["x"], s["y"], s.get("z", 0.0)] for s in known], float).reshape(-1, 3)
+    floor = np.array([index.get(s.get("floor_id") or "", 0) for s in known], np.int32)
+    std = np.array([s.get("std") or 1.0 for s in known], float)
+    return _sorted(Fixes(_times(known), xyz, floor, std))
+
+
+def _known(
+    items: list[dict[str, Any]], names_known: Callable[[dict[str, Any]], bool], skipped: Skipped
+) -> list[dict[str, Any]]:
+    """Return the samples naming something the site has; count the others as unknown ids."""
+    known = [s for s in items if names_known(s)]
     skipped.unknown_ids += len(items) - len(known)
-    return _sorted(
-        Fixes(
-            np.array([s["t"] for s in known], np.int64),
-            np.array([[s["x"], s["y"], s.get("z", 0.0)] for s in known], float).reshape(-1, 3),
-            np.array([site.floor_index.get(s.get("floor_id") or "", 0) for s in known], np.int32),
-            np.array([s.get("std") or 1.0 for s in known], float),
-        )
-    )
+    return known
+
+
+def _times(items: list[dict[str, Any]]) -> np.ndarray:
+    return np.array([s["t"] for s in items], np.int64)
+
+
+def _floats(items: list[dict[str, Any]], key: str) -> np.ndarray:
+    return np.array([s[key] for s in items], float)
 
 
 def _sorted(arrays: _A) -> _A:
