@@ -29,6 +29,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -39,13 +40,14 @@ from app import demo  # noqa: E402
 from app.core.config import Settings  # noqa: E402
 from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database  # noqa: E402
 from app.engine.positioning import PositioningEngine  # noqa: E402
+from app.engine.samples import Batch, Estimate  # noqa: E402
 from app.floors.service import put_floor  # noqa: E402
 from app.geometry.extent import ExtentLimits  # noqa: E402
 from app.ingest.schemas import IngestBatch  # noqa: E402
 from app.ingest.service import batch_samples  # noqa: E402
 from app.sites.schemas import SiteUpsert  # noqa: E402
 from app.sites.service import upsert_site  # noqa: E402
-from app.workers.messages import Ingest, decode_inbound, encode  # noqa: E402
+from app.workers.messages import Ingest, decode_ingest, encode  # noqa: E402
 from app.workers.shard import Shard  # noqa: E402
 from bench.load import Fleet  # noqa: E402
 
@@ -107,11 +109,11 @@ def measure(
     engine_seconds = 0.0
     process = PositioningEngine.process
 
-    def timed(self: PositioningEngine, *args: object, **kwargs: object) -> object:
+    def timed(self: PositioningEngine, batches: Mapping[str, Batch]) -> dict[str, list[Estimate]]:
         nonlocal engine_seconds
         started = time.process_time()
         try:
-            return process(self, *args, **kwargs)
+            return process(self, batches)
         finally:
             engine_seconds += time.process_time() - started
 
@@ -128,7 +130,7 @@ def measure(
             engine_seconds = 0.0
             started = time.process_time()
             for at in range(0, len(payloads), group):
-                shard.handle([decode_inbound(p) for p in payloads[at : at + group]])  # type: ignore[misc]
+                shard.handle([decode_ingest(p) for p in payloads[at : at + group]])
                 shard.tick()
             cpu = time.process_time() - started
             if profiler is not None:
