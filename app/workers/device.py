@@ -76,8 +76,9 @@ _identity = msgspec.msgpack.Encoder()
 def _key(kind: str, sample: Sample) -> int:
     """Return the identity of a sample, to recognise the same sample delivered twice.
 
-    The sample's msgpack bytes: a fifth of the cost of its ``repr`` (which told
-    the same values apart: ints from floats, 0.0 from -0.0).
+    The hash of the sample's msgpack bytes: ten BLE readings cost 1.6 µs where
+    their ``repr`` cost 5.8 µs, and the bytes tell the same values apart (ints
+    from floats, 0.0 from -0.0).
     """
     return hash((kind, _identity.encode(sample)))
 
