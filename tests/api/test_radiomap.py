@@ -31,7 +31,15 @@ from app.engine.tuning import (
     WALK_NOISE_CANDIDATES,
 )
 from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
-from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
+from app.evaluation.ilc.ablation import (
+    FIXED_LAG,
+    FULL,
+    LIVE,
+    STAGES,
+    StageScores,
+    load_engines,
+    replay_stages,
+)
 from app.evaluation.ilc.score import estimates_from_positions
 from app.evaluation.metrics import truth_at
 from app.evaluation.trackfit_eval import as_links, raw_track, server_fitter, simplify
@@ -334,12 +342,12 @@ def test_the_in_process_stages_are_the_server_on_its_own_build(
     # the live track is the server's, position for position (a position the server
     # flushed between two batches on a busy machine is in no answer: at most a few)
     live = _by_t([e for e in positions if not e.smoothed])
-    mine = _by_t(tracks[STAGES[1]])
+    mine = _by_t(tracks[LIVE])
     assert len(mine) > 20 and _same_where_both(live, mine) == 1.0
     assert len(live) >= 0.9 * len(mine)
     # so are the refined positions, wherever both refined the same live one
     refined = _by_t([e for e in positions if e.smoothed])
-    mine_refined = _by_t([e for e in tracks[STAGES[2]] if e.smoothed])
+    mine_refined = _by_t([e for e in tracks[FIXED_LAG] if e.smoothed])
     assert len(refined) > 20 and _same_where_both(refined, mine_refined) >= 0.9
 
 
@@ -361,11 +369,11 @@ def test_the_history_refines_a_stored_track_by_the_full_backward_pass(
     # it is the engine's full pass over the whole live track, from the odometry stored with it
     stages = _stages(settings, sid, walk)
     tracks = stages.tracks[walk.walk_id]
-    assert [e.t for e in refined] == [e.t for e in tracks[STAGES[1]]]
-    full = {e.t: (e.x, e.y) for e in tracks[STAGES[3]]}
+    assert [e.t for e in refined] == [e.t for e in tracks[LIVE]]
+    full = {e.t: (e.x, e.y) for e in tracks[FULL]}
     assert all(np.allclose((e.x, e.y), full[e.t], atol=0.02) for e in refined)
     # and it moved them
-    live = _by_t(tracks[STAGES[1]])
+    live = _by_t(tracks[LIVE])
     assert any(not np.allclose((e.x, e.y), live[e.t], atol=0.01) for e in refined)
     bad = client.get(url, params={"smoothed": "maybe"}, headers=make_admin())
     assert bad.status_code == 422 and "smoothed" in bad.text

@@ -11,6 +11,7 @@ from app.engine.gaussian import R68_SIGMAS_2D
 from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.floor_filter import floor_belief, log_sum_exp, tracked_floor
 from app.engine.hmm.kernels import propagate
+from app.engine.hmm.motion_fit import MotionFit
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.transition import step_displacement, transition_kernel
 from app.engine.pdr import Pdr, PdrParams, Steps
@@ -20,6 +21,9 @@ from app.engine.wknn import unique_readings
 
 _PDR_KEYS = tuple(Pdr().snapshot())
 """Keys of a PDR snapshot; those holding None are left out of the HMM's snapshot."""
+
+_MOTION_KEYS = ("t", "sw", "so", "sf", "soo", "sof")
+"""Keys of a motion fit's snapshot, under ``motion.`` in the HMM's."""
 
 
 class HmmTracker:
@@ -50,6 +54,14 @@ class HmmTracker:
         self.params = params
         self.pdr_params = pdr_params or PdrParams()
         n_maps = len(model.maps)
+        self.motion = MotionFit(
+            prior_m2=params.motion_prior_m2,
+            tau_s=params.motion_tau_s,
+            min_scale=params.motion_min_scale,
+            max_scale=params.motion_max_scale,
+            fix_sigma_m=params.fix_sigma_m,
+            gate=params.motion_gate,
+        )
         if state is None:
             self.pdr = Pdr(self.pdr_params)
             self.map = -1
@@ -58,6 +70,7 @@ class HmmTracker:
             self.summary: tuple[np.ndarray, float] | None = None
             self.d = np.zeros(2)
             self.odometry = np.zeros(2)
+            self.raw_odometry = 0j
             self.cov = np.zeros((2, 2))
             self.fix_var = 0.0
             self.match = 1.0
@@ -91,6 +104,7 @@ class HmmTracker:
             "prob_value": self.prob[nz].copy(),
             "d": self.d.copy(),
             "odometry": self.odometry.copy(),
+            "raw_odometry": np.array([self.raw_odometry.real, self.raw_odometry.imag]),
             "cov": self.cov.copy(),
             "fix_var": self.fix_var,
             "match": self.match,
@@ -111,6 +125,8 @@ class HmmTracker:
             "steps_length": self.steps.length.copy(),
             "steps_heading": self.steps.heading.copy(),
         }
+        for key, value in self.motion.snapshot().items():
+            state[f"motion.{key}"] = value
         # None (not yet known) is left out: snapshots hold numbers and arrays only
         for key, value in self.pdr.snapshot().items():
             if value is not None:
@@ -126,6 +142,10 @@ class HmmTracker:
         self.summary = None
         self.d = np.asarray(state["d"], dtype=float)
         self.odometry = np.asarray(state.get("odometry", np.zeros(2)), dtype=float)
+        self.raw_odometry = complex(*np.asarray(state.get("raw_odometry", np.zeros(2)), float))
+        if "motion.t" in state:
+            # snapshots before the motion fit start it afresh
+            self.motion.restore({k: state[f"motion.{k}"] for k in _MOTION_KEYS})
         self.cov = np.asarray(state["cov"], dtype=float).reshape(2, 2)
         self.fix_var = float(state.get("fix_var", 0.0))
         self.match = float(state.get("match", 1.0))
@@ -250,6 +270,15 @@ class HmmTracker:
         p = self.params
         length = float(self.steps.length[i])
         heading = float(self.steps.heading[i])
+        if math.isfinite(heading):
+            # the step as the site's constants see it: L (sin θ, cos θ)
+            theta = math.radians(heading)
+            self.raw_odometry += complex(length * math.sin(theta), length * math.cos(theta))
+        if p.learn_motion:
+            # turned counter-clockwise by β (clockwise headings fall by β) and scaled by s
+            beta, scale = self.motion.rotation_scale()
+            length *= scale
+            heading = (heading - math.degrees(beta)) % 360.0
         d, cov = step_displacement(length, heading, p.step_length_std_m, p.heading_std_deg)
         self.d = self.d + d
         self.odometry = self.odometry + d
@@ -278,6 +307,7 @@ class HmmTracker:
         else:
             self._update(t, ll[self.map], tx, rssi)
         self.fix_var = self._fix_variance(tx, rssi)
+        self._fit_motion(t, tx, rssi)
         self._follow_match(t, self._match_factor(tx, rssi))
         self._learn_offset(tx, rssi)
         self.t_scan = t
@@ -299,6 +329,15 @@ class HmmTracker:
         spread2 = float(weight @ np.sum((xy - fix) ** 2, axis=1)) / 2.0
         mean, _ = self._posterior()
         return spread2 + float(np.sum((mean - fix) ** 2))
+
+    def _fit_motion(self, t: int, tx: np.ndarray, rssi: np.ndarray) -> None:
+        """Count the scan's k-NN fix against the raw step track (``MotionFit``)."""
+        near = self.model.scan_neighbours(self.map, tx, rssi)
+        if near is None or not self.params.learn_motion:
+            return
+        xy, weight = near
+        fix = weight @ xy
+        self.motion.add(t, self.raw_odometry, complex(float(fix[0]), float(fix[1])))
 
     def _learn_offset(self, tx: np.ndarray, rssi: np.ndarray) -> None:
         """Update the device's RSSI offset with what this scan says it is.

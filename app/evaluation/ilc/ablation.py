@@ -10,7 +10,10 @@ same per-sample drops, sample conversion, late rule, filter choice,
 fixed-lag smoother and emission rules. Each stage is scored on its own:
 
 - the per-scan k-NN on the build's own survey scans, no tracking;
-- the HMM's live positions;
+- the HMM's live positions with each step as the phone reports it (a second
+  session with ``learn_motion`` off);
+- the HMM's live positions as the server emits them, the device's heading
+  bias and step-length scale learned online (``motion_fit``);
 - those refined by the fixed-lag smoother, as the history serves them (the
   refined position wherever there is one) right after the walk's last batch:
   the server's row, computed here;
@@ -51,13 +54,13 @@ from app.sites.models import Site
 from app.workers.device import DeviceSession
 from app.workers.trackers import SiteEngines
 
-STAGES = (
-    "k-NN on the build's scans",
-    "+ HMM tracking (live)",
-    "+ fixed-lag smoothing",
-    "+ full smoothing",
-)
-"""The rows, in the order each stage is added."""
+KNN = "k-NN on the build's scans"
+TRACKING = "+ HMM tracking, steps as the phone reports them (live)"
+LIVE = "+ online heading-bias and step-scale states (live)"
+FIXED_LAG = "+ fixed-lag smoothing"
+FULL = "+ full smoothing"
+STAGES = (KNN, TRACKING, LIVE, FIXED_LAG, FULL)
+"""The rows, in the order each stage is added; from ``LIVE`` on, the server's engine."""
 
 
 @dataclass
@@ -69,17 +72,20 @@ class StageScores:
     cpu_s: float
     updates: int
     tracks: dict[str, dict[str, list[Estimate]]] = field(default_factory=dict)
+    reported_cpu_s: float = 0.0
+    """The tracker's CPU time (s) with the steps as the phone reports them (``TRACKING``)."""
 
     def rows(self) -> list[Row]:
         """Return one table row per stage; CPU per update on the tracking rows."""
+        cpu = {KNN: 0.0, TRACKING: self.reported_cpu_s}
         return [
             summarise(
                 name,
                 self.scores[name],
-                0.0 if i == 0 else self.cpu_s,
-                0 if i == 0 else self.updates,
+                cpu.get(name, self.cpu_s),
+                0 if name == KNN else self.updates,
             )
-            for i, name in enumerate(STAGES)
+            for name in STAGES
         ]
 
 
@@ -129,48 +135,74 @@ def replay_stages(
     to_eval = np.array([floors.index(f) for f in engines.site.floor_ids], dtype=np.int64)
     scores: dict[str, list[WalkScore]] = {name: [] for name in STAGES}
     tracks: dict[str, dict[str, list[Estimate]]] = {}
-    cpu = 0.0
-    updates = 0
+    as_reported = replace(engines, hmm_params=replace(engines.hmm_params, learn_motion=False))
+    served_cpu, reported_cpu, updates = 0.0, 0.0, 0
     for walk in walks:
-        device_id = f"stages-{walk.walk_id}"
-        session = DeviceSession(device_id=device_id, engines=engines, now=0)
         chunks = batches_by_time(
             walk_samples(walk, wifi_times=wifi_times),
             batch_ms=1000,
             sent_at={"wifi": walk.wifi.t.tolist()},
         )
-        knn: list[Estimate] = []
-        live: list[Estimate] = []
-        messages: list[dict[str, Any]] = []
-        for chunk in chunks:
-            body = json.dumps({"device_id": device_id, "site_id": site_id} | chunk)
-            batch_in, _ = screen_batch(body, settings)
-            session.add(batch_samples(batch_in), now=0)
-            batch, _ = session.take(reorder_ms=0, flush=True)
-            if batch is None or session.tracker is None:
-                continue
-            if engines.hmm.references is not None:
-                knn += scan_estimates(engines.hmm.references, batch.rssi)
-            t0 = time.process_time()
-            estimates = session.tracker.process(batch)
-            cpu += time.process_time() - t0
-            updates += 1
-            # what the session emits, each time once; the full pass needs the estimates'
-            # own odometry, which messages do not carry
-            live += [e for e in estimates if not e.smoothed and e.t > session.emitted_t]
-            messages += session.emit(estimates, now=0)[0]
-        smoothed = smooth_track(live, engines.site.tuning.full_pass())
-        emitted = estimates_from_positions(messages, floors)
-        served = served_track(emitted)
+        bodies = [
+            json.dumps({"device_id": f"stages-{walk.walk_id}", "site_id": site_id} | chunk)
+            for chunk in chunks
+        ]
+        served = _session_replay(engines, bodies, settings, knn=True)
+        reported = _session_replay(as_reported, bodies, settings, knn=False)
+        served_cpu += served.cpu_s
+        reported_cpu += reported.cpu_s
+        updates += served.updates
+        smoothed = smooth_track(served.live, engines.site.tuning.full_pass())
+        emitted = estimates_from_positions(served.messages, floors)
         floor = floors.index(walk.floor)
         stages = (
-            _renumbered(knn, to_eval),
+            _renumbered(served.knn, to_eval),
+            [e for e in estimates_from_positions(reported.messages, floors) if not e.smoothed],
             [e for e in emitted if not e.smoothed],
-            served,
+            served_track(emitted),
             _renumbered(smoothed, to_eval),
         )
         for name, stage in zip(STAGES, stages, strict=True):
             scores[name].append(score_walk(walk.waypoints, floor, stage))
         if walk.walk_id in keep:
             tracks[walk.walk_id] = dict(zip(STAGES, stages, strict=True))
-    return StageScores(scores, cpu, updates, tracks)
+    return StageScores(scores, served_cpu, updates, tracks, reported_cpu)
+
+
+@dataclass
+class _SessionReplay:
+    """One walk through one device session: the per-scan k-NN's estimates (if asked), the
+    live estimates, the position messages emitted, and the tracker's CPU time and batches."""
+
+    knn: list[Estimate] = field(default_factory=list)
+    live: list[Estimate] = field(default_factory=list)
+    messages: list[dict[str, Any]] = field(default_factory=list)
+    cpu_s: float = 0.0
+    updates: int = 0
+
+
+def _session_replay(
+    engines: SiteEngines, bodies: Sequence[str], settings: Settings, *, knn: bool
+) -> _SessionReplay:
+    """Replay one walk's ingest bodies through a worker's device session on ``engines``."""
+    out = _SessionReplay()
+    session: DeviceSession | None = None
+    for body in bodies:
+        batch_in, _ = screen_batch(body, settings)
+        if session is None:
+            session = DeviceSession(device_id=batch_in.device_id, engines=engines, now=0)
+        session.add(batch_samples(batch_in), now=0)
+        batch, _ = session.take(reorder_ms=0, flush=True)
+        if batch is None or session.tracker is None:
+            continue
+        if knn and engines.hmm.references is not None:
+            out.knn += scan_estimates(engines.hmm.references, batch.rssi)
+        t0 = time.process_time()
+        estimates = session.tracker.process(batch)
+        out.cpu_s += time.process_time() - t0
+        out.updates += 1
+        # what the session emits, each time once; the full pass needs the estimates'
+        # own odometry, which messages do not carry
+        out.live += [e for e in estimates if not e.smoothed and e.t > session.emitted_t]
+        out.messages += session.emit(estimates, now=0)[0]
+    return out

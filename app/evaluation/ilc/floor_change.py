@@ -33,11 +33,11 @@ import numpy as np
 from app.core.config import Settings
 from app.datasets.ilc import BeaconScan, Walk, WifiScan
 from app.engine.samples import Estimate
-from app.evaluation.ilc.ablation import STAGES, load_engines, replay_stages
+from app.evaluation.ilc.ablation import FIXED_LAG, LIVE, load_engines, replay_stages
 from app.evaluation.ilc.server import SITE_ID, add_site_arguments, built_site, split_site
 from app.workers.trackers import SiteEngines
 
-STAGES_TIMED = (STAGES[1], STAGES[2])
+STAGES_TIMED = (LIVE, FIXED_LAG)
 """The live positions and the history as served (refined where refined)."""
 
 

@@ -44,7 +44,14 @@ import numpy as np
 from app.core.config import Settings
 from app.datasets import data_dir
 from app.datasets.ilc import Walk, read_floor, read_walk, site_walks
-from app.evaluation.ilc.ablation import STAGES, StageScores, load_engines, replay_stages
+from app.evaluation.ilc.ablation import (
+    FIXED_LAG,
+    FULL,
+    LIVE,
+    StageScores,
+    load_engines,
+    replay_stages,
+)
 from app.evaluation.ilc.experiment import add_split_arguments
 from app.evaluation.ilc.knn_baseline import scan_knn_scores
 from app.evaluation.ilc.plots import plot_on_plan
@@ -232,7 +239,7 @@ def _plot_stages(
         plan = floor_plan(
             parse_floor_map(read_floor(site_dir / walk.floor).geojson), cell=PLAN_CELL_M
         )
-        shown = {name: tracks[name] for name in STAGES[1:]}
+        shown = {name: tracks[name] for name in (LIVE, FIXED_LAG, FULL)}
         plot_on_plan(folder / f"{walk.floor}_{walk_id}.png", plan, f, walk, shown)
 
 
