@@ -14,7 +14,10 @@ one floor's reference points is carried from scan to scan:
    grid this transition is a convolution of the distribution with a shifted
    Gaussian kernel, computed only over the bounding box of the points whose
    probability exceeds P_T; mass moved off the reference points (off the
-   walkable, surveyed area) is lost, which is the map constraint.
+   walkable, surveyed area) is lost, which is the map constraint. Each step
+   is first turned and scaled by the device's own heading bias and stride,
+   learned online from how its raw step track lies against its scans' k-NN
+   fixes (``motion_fit``).
 3. **Emission**: the product over transmitters of Gaussians with the point's
    mean and variance, in the log domain, with the point's detection rate for
    heard and unheard transmitters alike (missing signals are evidence). Each
@@ -41,5 +44,6 @@ scan and by the site's calibration.
 
 Modules: ``params`` (the tunable constants), ``emission`` (step 3 and the
 k-NN of step 1, prepared once per site), ``transition`` (step 2 on the grid),
-``tracker`` (one device's chain over points and floors: steps 1 and 4).
+``motion_fit`` (the device's heading bias and step scale), ``tracker`` (one
+device's chain over points and floors: steps 1 and 4).
 """

@@ -250,6 +250,25 @@ def louder(walk: Walk, offset_db: float) -> Walk:
     return replace(walk, wifi=replace(walk.wifi, rssi=walk.wifi.rssi + offset_db))
 
 
+def turned(walk: Walk, offset_deg: float) -> Walk:
+    """Return the walk as a phone whose every heading is ``offset_deg`` clockwise of the
+    walking direction reports it (carried turned in a pocket or a hand).
+
+    The rotation vector (device to east-north-up, w implied non-negative) is
+    turned about the vertical: q' = q_z(-offset) q.
+    """
+    if offset_deg == 0.0 or not walk.rot.size:
+        return walk
+    t, x, y, z = walk.rot.T
+    w = np.sqrt(np.clip(1.0 - x**2 - y**2 - z**2, 0.0, None))
+    half = np.radians(-offset_deg) / 2.0
+    c, s = np.cos(half), np.sin(half)
+    # (c + s k)(w + x i + y j + z k)
+    q = np.stack([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w])
+    q = np.where(q[0] < 0, -q, q)
+    return replace(walk, rot=np.column_stack([t, q[1], q[2], q[3]]))
+
+
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     """Parse the options of ``locus eval ilc``."""
     parser = argparse.ArgumentParser(
@@ -268,6 +287,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         default=0.0,
         help="the held-out walks' phones hear WiFi this many dB louder than the survey's "
         "(another make of phone)",
+    )
+    parser.add_argument(
+        "--heading-offset",
+        type=float,
+        default=0.0,
+        help="the held-out walks' phones report every heading this many degrees clockwise "
+        "of the walking direction (a phone carried turned)",
     )
     parser.add_argument("--save", type=Path, help="write the positions and summary as JSON")
     parser.add_argument("--plots", type=Path, help="folder for PNGs of a few walks' stages")
@@ -317,10 +343,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parse_args(argv)
     console = Console(width=max(Console().width, 160))
     site_dir, floors, train_walks, held = split_site(args)
-    held = [louder(w, args.rssi_offset) for w in held[: args.limit]]
+    held = [turned(louder(w, args.rssi_offset), args.heading_offset) for w in held[: args.limit]]
     console.print(
         f"{len(floors)} floors, {len(train_walks)} survey walks, {len(held)} held-out walks; "
-        f"WiFi timed by {args.wifi_times}, held-out phones {args.rssi_offset:+g} dB"
+        f"WiFi timed by {args.wifi_times}, held-out phones {args.rssi_offset:+g} dB, "
+        f"headings {args.heading_offset:+g}°"
     )
     plotted = (
         [held[i].walk_id for i in np.linspace(0, len(held) - 1, args.n_plots).astype(int)]
