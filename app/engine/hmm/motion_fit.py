@@ -63,6 +63,7 @@ class MotionFit:
     sf: complex = 0j
     soo: float = 0.0
     sof: complex = 0j
+    _fitted: tuple[float, float] = (0.0, 1.0)
 
     def add(self, t: int, odometry: complex, fix: complex) -> None:
         """Count one scan: the raw step track's position and the scan's fix, at time ``t`` (ms)."""
@@ -80,10 +81,15 @@ class MotionFit:
         self.sf += fix
         self.soo += abs(odometry) ** 2
         self.sof += odometry.conjugate() * fix
+        self._fitted = self._fit()
 
     def rotation_scale(self) -> tuple[float, float]:
         """Return the fitted rotation β (rad, counter-clockwise) and step-length scale s."""
-        if self.sw <= 0.0:
+        return self._fitted
+
+    def _fit(self) -> tuple[float, float]:
+        """Fit β and s to the sums (kept until the next scan: every step between uses them)."""
+        if self.sw <= 0.0 or self.soo + self.prior_m2 <= 0.0:
             return 0.0, 1.0
         # centred sums: S_oo = Σ|o|² - |Σo|²/Σw, S_of = Σ conj(o) f - conj(Σo) Σf / Σw
         soo = max(self.soo - abs(self.so) ** 2 / self.sw, 0.0)
@@ -92,12 +98,10 @@ class MotionFit:
         beta = math.atan2((sof + lam).imag, (sof + lam).real)
         scale = (abs(sof) + lam) / (soo + lam)
         if self.fix_sigma_m > 0 and self.gate > 0:
-            # each kept as far as it stands out of its noise, σ² = σ_f² / (S_oo + λ):
-            # c ← c · c² / (c² + g σ²)
+            # each kept as far as it stands out of its noise, σ² = σ_f² / (S_oo + λ)
             noise = self.gate * self.fix_sigma_m**2 / (soo + lam)
-            beta *= beta**2 / (beta**2 + noise)
-            growth = scale - 1.0
-            scale = 1.0 + growth * growth**2 / (growth**2 + noise)
+            beta = _gated(beta, noise)
+            scale = 1.0 + _gated(scale - 1.0, noise)
         return beta, min(max(scale, self.min_scale), self.max_scale)
 
     def snapshot(self) -> dict[str, Any]:
@@ -119,3 +123,9 @@ class MotionFit:
         self.sf = complex(*(float(v) for v in state["sf"]))
         self.soo = float(state["soo"])
         self.sof = complex(*(float(v) for v in state["sof"]))
+        self._fitted = self._fit()
+
+
+def _gated(correction: float, noise: float) -> float:
+    """Return the correction c kept as far as it stands out of ``noise`` g σ²: c³ / (c² + g σ²)."""
+    return correction * (correction**2 / (correction**2 + noise))

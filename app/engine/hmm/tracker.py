@@ -332,8 +332,10 @@ class HmmTracker:
 
     def _fit_motion(self, t: int, tx: np.ndarray, rssi: np.ndarray) -> None:
         """Count the scan's k-NN fix against the raw step track (``MotionFit``)."""
+        if not self.params.learn_motion:
+            return
         near = self.model.scan_neighbours(self.map, tx, rssi)
-        if near is None or not self.params.learn_motion:
+        if near is None:
             return
         xy, weight = near
         fix = weight @ xy
