@@ -27,13 +27,16 @@ def walk(length_m: float, scans: int) -> np.ndarray:
     return np.where(s < half, s + 0j, half + 1j * (s - half))
 
 
-def feed(motion: MotionFit, odometry: np.ndarray, truth: complex, seed: int) -> None:
-    """Add one scan every 3 s: the raw track and a fix of where the walker truly was."""
+def feed(
+    motion: MotionFit, odometry: np.ndarray, truth: complex, seed: int, scans: range | None = None
+) -> None:
+    """Add one scan every 3 s (those numbered ``scans``, default all): the raw track and a
+    fix of where the walker truly was."""
     rng = np.random.default_rng(seed)
     noise = rng.normal(0.0, FIX_SIGMA_M, (odometry.size, 2))
-    for k, o in enumerate(odometry):
-        fix = 20.0 + 7.0j + truth * o + complex(*noise[k])
-        motion.add(3000 * k, complex(o), fix)
+    for k in scans if scans is not None else range(odometry.size):
+        fix = 20.0 + 7.0j + truth * odometry[k] + complex(*noise[k])
+        motion.add(3000 * k, complex(odometry[k]), fix)
 
 
 def test_a_phone_turned_a_quarter_turn_with_a_long_stride_is_learned_from_noisy_fixes() -> None:
@@ -78,17 +81,14 @@ def test_old_scans_fade_so_a_phone_put_away_differently_is_followed() -> None:
 
 
 def test_a_fit_resumed_from_its_snapshot_continues_exactly() -> None:
-    track = walk(60.0, 20)
+    track, truth = walk(60.0, 20), 1.2 * np.exp(0.5j)
     straight, first = fit(), fit()
-    feed(straight, track, 1.2 * np.exp(0.5j), seed=6)
-    feed(first, track[:10], 1.2 * np.exp(0.5j), seed=6)
+    feed(straight, track, truth, seed=6)
+    feed(first, track, truth, seed=6, scans=range(10))
     # through the workers' serialisation: plain arrays and numbers only
     state = snapshots.decode(snapshots.encode({"m": first.snapshot()}))["m"]
     resumed = fit()
     resumed.restore(state)
-    rng = np.random.default_rng(6)
-    noise = rng.normal(0.0, FIX_SIGMA_M, (track.size, 2))
-    for k in range(10, track.size):
-        fix = 20.0 + 7.0j + 1.2 * np.exp(0.5j) * track[k] + complex(*noise[k])
-        resumed.add(3000 * k, complex(track[k]), fix)
+    assert resumed.rotation_scale() == first.rotation_scale()
+    feed(resumed, track, truth, seed=6, scans=range(10, track.size))
     assert resumed.rotation_scale() == straight.rotation_scale()

@@ -67,6 +67,9 @@ class MotionFit:
 
     def add(self, t: int, odometry: complex, fix: complex) -> None:
         """Count one scan: the raw step track's position and the scan's fix, at time ``t`` (ms)."""
+        # Python complex arithmetic throughout, as the sums come back from a snapshot (numpy's
+        # complex division rounds differently)
+        odometry, fix = complex(odometry), complex(fix)
         if self.t >= 0 and self.tau_s > 0:
             # every sum decays by e^(-Δt/τ)
             keep = math.exp(-max(t - self.t, 0) / 1000.0 / self.tau_s)
