@@ -97,13 +97,13 @@ def _answer(result: dict[str, Any], wait: bool) -> Response:
     )
 
 
-async def _ingest_one(
+def _submit_one(
     raw: bytes | str, *, principal: Principal, state: AppState, runtime: Runtime, wait: bool
-) -> dict[str, Any]:
+) -> tuple[flows.Submitted, dict[str, Any]]:
     """Validate one device's batch, check it against the key and the site, submit it; return
-    the single ingest's answer (with ``wait``, after its positions)."""
+    the submission and the drops to report. The parsed batch dies with this call."""
     batch, dropped = _parse_batch(raw, state)
-    result = await flows.ingest_batch(
+    submitted = flows.submit_batch(
         batch=batch,
         principal=principal,
         settings=state.settings,
@@ -112,7 +112,19 @@ async def _ingest_one(
         wait=wait,
     )
     state.metrics.ingest_samples.labels("device").inc(batch.sample_count)
-    return result | dropped
+    return submitted, dropped
+
+
+async def _ingest_one(
+    raw: bytes | str, *, principal: Principal, state: AppState, runtime: Runtime, wait: bool
+) -> dict[str, Any]:
+    """Submit one device's batch; return the single ingest's answer (with ``wait``, after
+    its positions)."""
+    submitted, dropped = _submit_one(
+        raw, principal=principal, state=state, runtime=runtime, wait=wait
+    )
+    timeout_s = state.settings.ingest_wait_timeout_s
+    return await flows.settle(submitted, wait=wait, timeout_s=timeout_s) | dropped
 
 
 def _refusal(exc: ApiError | DomainError) -> dict[str, Any]:
