@@ -72,6 +72,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=settings.port,
         log_level="info",
         access_log=settings.access_log,
+        timeout_keep_alive=settings.keep_alive_s,
     )
     return 0
 
@@ -114,6 +115,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             host=settings.host,
             port=settings.port,
             access_log=settings.access_log,
+            timeout_keep_alive=settings.keep_alive_s,
         )
     )
     stop = threading.Event()

@@ -76,6 +76,16 @@ class Settings(BaseSettings):
         description="A worker that stops renewing loses its shards after this.",
     )
     access_log: bool = Field(default=False, description="Log every HTTP request.")
+    keep_alive_s: int = Field(
+        default=75,
+        ge=1,
+        le=3600,
+        description="Seconds an idle HTTP connection stays open. Devices post every second "
+        "to every minute; at uvicorn's 5 s a tag posting every 10 s opened a connection for "
+        "each batch, and an API paused for 5 s closed every idle connection at once when it "
+        "resumed, so that all its devices reconnected together. Longer than the 60 s idle "
+        "timeout of common load balancers, which must not find a connection closed under them.",
+    )
     opentelemetry: bool = Field(
         default=False,
         description="Trace and measure requests with FastAPI's OpenTelemetry instrumentation "
