@@ -15,11 +15,28 @@ REQUEST = b"GET /healthz HTTP/1.1\r\nHost: locus\r\n\r\n"
 
 
 def _answered(conn: socket.socket) -> bool:
-    """Send one request on ``conn``; True when an answer comes, False when the server has
-    closed the connection."""
+    """Send one request on ``conn`` and read its whole answer; True when it is a 200, False
+    when the server has closed the connection."""
     try:
         conn.sendall(REQUEST)
-        return conn.recv(4096).startswith(b"HTTP/1.1 200")
+        answer = b""
+        while b"\r\n\r\n" not in answer:
+            chunk = conn.recv(4096)
+            if not chunk:
+                return False
+            answer += chunk
+        head, body = answer.split(b"\r\n\r\n", 1)
+        length = next(
+            int(line.split(b":")[1])
+            for line in head.split(b"\r\n")
+            if line.lower().startswith(b"content-length:")
+        )
+        while len(body) < length:
+            chunk = conn.recv(4096)
+            if not chunk:
+                return False
+            body += chunk
+        return head.startswith(b"HTTP/1.1 200")
     except (BrokenPipeError, ConnectionResetError):
         return False
 
