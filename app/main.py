@@ -19,6 +19,7 @@ from app.core.openapi import install_openapi
 from app.core.query import reject_unknown_query
 from app.devices.router import router as devices_router
 from app.floors.router import router as floors_router
+from app.ingest.direct import DirectIngest
 from app.ingest.router import router as ingest_router
 from app.keys.router import router as keys_router
 from app.ops.router import router as ops_router
@@ -95,6 +96,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     install_openapi(app)
 
+    # the metrics wrap the direct ingest path too: a middleware added later runs outside
+    app.add_middleware(DirectIngest, routes=ingest_router.routes)
     app.add_middleware(RequestMetrics)
     # ingest first: a request is matched against the routes in this order, and ingest
     # carries nearly all of them

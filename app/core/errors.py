@@ -192,37 +192,31 @@ def _other_methods(request: Request) -> list[str]:
     return sorted(methods)
 
 
-def install_error_handlers(app: FastAPI) -> None:
-    """Render every error, ours or the framework's, as the contract's error object."""
+_STORAGE_ERRORS = (sa.DBAPIError, sa.TimeoutError, redis.ConnectionError, redis.TimeoutError)
+"""Errors of the database or Redis: a 503 when the store is out, else a 500."""
 
-    @app.exception_handler(ApiError)
-    async def _api_error(_: Request, exc: ApiError) -> JSONResponse:
+
+async def error_response(request: Request, exc: Exception) -> JSONResponse:
+    """Return the contract's answer to any error a request raised.
+
+    The exception handlers render by it, and so does the ingest's direct path
+    (``app.ingest.direct``), which the framework's handlers do not see.
+    """
+    if isinstance(exc, ApiError):
         return JSONResponse(
             error_body(exc.code, exc.message, exc.details), exc.status, headers=exc.headers
         )
-
-    @app.exception_handler(DomainError)
-    async def _domain_error(_: Request, exc: DomainError) -> JSONResponse:
+    if isinstance(exc, DomainError):
         headers = None
         if exc.retry_after_s is not None:
             headers = {"Retry-After": str(max(1, round(exc.retry_after_s)))}
         return JSONResponse(
             error_body(exc.code, exc.message, exc.details), exc.status, headers=headers
         )
-
-    @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
+    if isinstance(exc, RequestValidationError):
         error = validation_failed(list(exc.errors()))
         return JSONResponse(error_body(error.code, error.message, error.details), error.status)
-
-    @app.exception_handler(Exception)
-    async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
-        log.exception("unhandled error", exc_info=exc)
-        return JSONResponse(error_body("internal", "internal server error"), 500)
-
-    async def _storage(request: Request, exc: Exception) -> JSONResponse:
-        if not is_outage(exc):
-            return await _unexpected(request, exc)
+    if isinstance(exc, _STORAGE_ERRORS) and is_outage(exc):
         log.warning("storage unavailable: %s %s: %s", request.method, request.url.path, exc)
         store = "Redis" if isinstance(exc, redis.RedisError) else "the database"
         return JSONResponse(
@@ -230,9 +224,14 @@ def install_error_handlers(app: FastAPI) -> None:
             503,
             headers={"Retry-After": str(RETRY_AFTER_S)},
         )
+    log.exception("unhandled error", exc_info=exc)
+    return JSONResponse(error_body("internal", "internal server error"), 500)
 
-    for kind in (sa.DBAPIError, sa.TimeoutError, redis.ConnectionError, redis.TimeoutError):
-        app.add_exception_handler(kind, _storage)
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Render every error, ours or the framework's, as the contract's error object."""
+    for kind in (ApiError, DomainError, RequestValidationError, Exception, *_STORAGE_ERRORS):
+        app.add_exception_handler(kind, error_response)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:

@@ -28,7 +28,6 @@ from app.core.sample_policy import report, validate_screened
 from app.core.security import Principal
 from app.ingest import flows, service
 from app.ingest.bulk import bulk_items
-from app.ingest.route import IngestRoute
 from app.ingest.schemas import (
     BulkAnswer,
     BulkIngest,
@@ -42,7 +41,7 @@ from app.keys.deps import PrincipalDep, websocket_principal
 from app.state import AppState, app_state, runtime_of
 from app.workers.runtime import Runtime
 
-router = APIRouter(prefix="/v1", tags=["ingest"], route_class=IngestRoute)
+router = APIRouter(prefix="/v1", tags=["ingest"])
 
 
 async def _read_body(request: Request, limit: int) -> bytes:

@@ -15,7 +15,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from app.core.config import Settings
 from app.engine.wifi_age import DEFAULT_MAX_AGE_MS
-from tests.conftest import ADMIN_KEY, floor_doc
+from tests.conftest import ADMIN_KEY, floor_doc, make_key
 
 T0 = 1_700_000_000_000
 AP = ["aa:00:00:00:00:01", "aa:00:00:00:00:02", "aa:00:00:00:00:03"]
@@ -460,3 +460,45 @@ def test_ingest_answers_alike_however_its_query_is_spelt(
     for query in ("?wait=true", "?wait=yes"):
         r = post(query, {}, "anonymous")
         assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized", (query, r.text)
+
+
+@pytest.mark.parametrize("route", ["/v1/ingest", "/v1/ingest/bulk", "/v1/ingest/locator"])
+def test_plain_ingest_queries_are_answered_and_refused_as_any_other(
+    client: TestClient, admin: dict, site_id: str, route: str
+) -> None:
+    """``?wait=true`` is served ahead of the framework's routing, ``?wait=True`` through it:
+    every refusal must read the same either way, status, error object and headers."""
+    viewer = make_key(client, admin, "viewer", site_id)
+    too_long = b'{"device_id": "' + b"x" * (2 << 20) + b'"}'
+    cases = {
+        "no key": (b"{}", {}),
+        "unknown key": (b"{}", {"Authorization": "Bearer lk_nope"}),
+        "viewer key": (b"{}", viewer),
+        "not json": (b"{device_id: 1", admin),
+        "not a batch": (b'{"device_id": 3}', admin),
+        "too large": (too_long, admin),
+        "unknown site": (json.dumps(batch("no-such-site", "d")).encode(), admin),
+    }
+    for case, (body, headers) in cases.items():
+        sent = headers | {"content-type": "application/json"}
+        direct = client.post(route + "?wait=true", content=body, headers=sent)
+        framework = client.post(route + "?wait=True", content=body, headers=sent)
+        assert direct.status_code >= 400, (case, direct.text)
+        assert direct.status_code == framework.status_code, (case, direct.text, framework.text)
+        assert direct.json() == framework.json(), case
+        assert direct.headers.get("retry-after") == framework.headers.get("retry-after"), case
+
+
+def test_plain_ingest_requests_are_counted_by_their_route(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    def count() -> float:
+        line = 'locus_http_requests_total{method="POST",route="/v1/ingest",status="202"}'
+        found = [s for s in client.get("/metrics").text.splitlines() if s.startswith(line)]
+        return float(found[0].rsplit(" ", 1)[1]) if found else 0.0
+
+    before = count()
+    for n in range(3):
+        body = batch(site_id, f"{site_id}-counted-{n}")
+        assert client.post("/v1/ingest", json=body, headers=admin).status_code == 202
+    assert count() == before + 3
