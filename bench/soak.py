@@ -30,6 +30,7 @@ from bench.load import (  # noqa: E402
     _own_server,
     _rss_mb,
     _until_built,
+    quiet_collector,
     start_devices,
 )
 
@@ -40,6 +41,7 @@ Sample = tuple[float, float, float, float, float, int, tuple[float, ...]]
 async def _soak(
     url: str, devices: int, seconds: float, every: float, pids: list[int]
 ) -> list[Sample]:
+    quiet_collector()
     tally = Tally()
     until = time.monotonic() + seconds
     tasks = start_devices(url, ADMIN, devices, seconds, tally, "soak")
