@@ -174,9 +174,9 @@ def quiet_collector() -> None:
     """Keep this generator's cyclic collector from pausing it the way the server's is kept.
 
     The tallies grow by a tuple per answer; at Python's thresholds the generator
-    paused for a full collection every 100 s, 40 ms at first and 131 ms after
-    17 minutes of 900 devices, and its devices' next batches reached the server
-    together, a burst the server's memory and latency then showed.
+    paused for a full collection every 100 s (900 devices), 42 ms at first and up
+    to 131 ms later, and its devices' next batches reached the server together, a
+    burst the workers' memory then showed.
     """
     settle_heap()
 
