@@ -10,7 +10,7 @@ import weakref
 
 import pytest
 
-from app.core.heap import settle_heap
+from app.core.heap import map_large_allocations, settle_heap
 
 
 class _Node:
@@ -93,3 +93,50 @@ def test_trimming_returns_freed_pages_that_live_chunks_hold_in_the_heap() -> Non
     )
     released_mb = float(out.stdout)
     assert released_mb > 60.0
+
+
+_MAPPED_AFTER_A_LARGER_BLOCK_FREED = """
+import ctypes, sys
+from app.core.heap import map_large_allocations
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks",
+        "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = MallInfo2
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+
+if sys.argv[1] == "fixed":
+    assert map_large_allocations(128 * 1024)
+libc.free(libc.malloc(4 * 2**20))  # a 4 MiB block, mapped on its own, then freed
+mapped = libc.mallinfo2().hblks
+block = libc.malloc(512 * 1024)
+print(libc.mallinfo2().hblks - mapped)
+libc.free(block)
+"""
+
+
+def _mapped_blocks_gained(mode: str) -> int:
+    out = subprocess.run(
+        [sys.executable, "-c", _MAPPED_AFTER_A_LARGER_BLOCK_FREED, mode],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return int(out.stdout)
+
+
+@pytest.mark.skipif(
+    ctypes.util.find_library("c") is None or sys.platform != "linux", reason="glibc's allocator"
+)
+def test_a_fixed_threshold_keeps_large_blocks_out_of_the_heap_after_a_larger_one_is_freed() -> None:
+    # glibc's own threshold rose to 4 MiB with the freed block: 512 KiB comes from the heap
+    assert _mapped_blocks_gained("adaptive") == 0
+    assert _mapped_blocks_gained("fixed") == 1
+
+
+def test_no_threshold_leaves_the_allocator_as_it_is() -> None:
+    assert map_large_allocations(0) is False

@@ -281,6 +281,15 @@ class Settings(BaseSettings):
         "once a minute, a worker's resident memory saws up and down by 5 MB between trims, "
         "while one trim costs about 0.4 ms.",
     )
+    worker_mmap_threshold_bytes: int = Field(
+        default=128 * 1024,
+        ge=0,
+        le=32 * 1024 * 1024,
+        description="A worker's C allocations of this many bytes or more get a mapping of "
+        "their own, unmapped when freed (glibc ``mallopt``); 0 leaves glibc's threshold, "
+        "which rises to the largest block freed so far and lets a worker's heap grow "
+        "under steady load while the bytes it holds stay flat.",
+    )
     snapshot_every_ms: int = Field(
         default=10_000,
         ge=0,

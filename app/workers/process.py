@@ -11,7 +11,7 @@ from typing import Any
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
-from app.core.heap import settle_heap, trim_allocator
+from app.core.heap import map_large_allocations, settle_heap, trim_allocator
 from app.core.logging import configure_logging
 from app.core.time import now_ms
 from app.workers.coverage import CoverageLedger
@@ -62,6 +62,7 @@ def worker_main(shard_id: int, settings_json: str, inbox: Connection, outbox: Co
     whose other ends the API holds (``app.workers.pipes`` frames both).
     """
     settings = Settings.model_validate_json(settings_json)
+    map_large_allocations(settings.worker_mmap_threshold_bytes)
     configure_logging()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     stopping = False
