@@ -58,8 +58,9 @@ def map_large_allocations(threshold: int) -> bool:
     glibc starts at 128 KiB but raises its threshold to the size of each mapped block
     freed (up to 32 MiB), so after a worker's first rounds its large transient arrays
     came from the heap, and the small long-lived chunks placed above them kept the heap
-    growing: under 900 devices at 1 Hz the two workers' heaps grew from 66.0 and 66.6 MB
-    to 82.8 and 91.0 MB in 11 minutes while the bytes in use held at 60.4 to 61.0 MB.
+    growing: under 900 devices at 1 Hz the two workers' heaps grew from 64.2 and 64.5 MB
+    to as much as 83.8 and 91.0 MB in 12 minutes while the bytes in use held at 60.4 to
+    61.0 MB.
     Fixed at 128 KiB (setting it at all stops the raising), they held at 60.3 to 61.1 MB.
     """
     if _MALLOPT is None or threshold <= 0:
