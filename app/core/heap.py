@@ -60,8 +60,8 @@ def map_large_allocations(threshold: int) -> bool:
     came from the heap, and the small long-lived chunks placed above them kept the heap
     growing: under 900 devices at 1 Hz the two workers' heaps grew from 64.2 and 64.5 MB
     to as much as 83.8 and 91.0 MB in 12 minutes while the bytes in use held at 60.4 to
-    61.0 MB.
-    Fixed at 128 KiB (setting it at all stops the raising), they held at 60.3 to 61.1 MB.
+    61.0 MB. Fixed at 128 KiB (setting it at all stops the raising), they held at 60.3
+    to 61.1 MB.
     """
     if _MALLOPT is None or threshold <= 0:
         return False
