@@ -10,7 +10,7 @@ import weakref
 
 import pytest
 
-from app.core.heap import map_large_allocations, settle_heap
+from app.core.heap import PeriodicTrim, map_large_allocations, settle_heap
 
 
 class _Node:
@@ -140,3 +140,17 @@ def test_a_fixed_threshold_keeps_large_blocks_out_of_the_heap_after_a_larger_one
 
 def test_no_threshold_leaves_the_allocator_as_it_is() -> None:
     assert map_large_allocations(0) is False
+
+
+def test_a_periodic_trim_trims_once_per_period_and_never_at_zero() -> None:
+    now = [100.0]
+    trim = PeriodicTrim(5.0, clock=lambda: now[0])
+    now[0] = 104.9
+    assert trim() is False, "not a period since it was made"
+    now[0] = 105.0
+    assert trim() is (ctypes.util.find_library("c") is not None and sys.platform == "linux")
+    now[0] = 109.0
+    assert trim() is False, "not a period since the last trim"
+    never = PeriodicTrim(0.0, clock=lambda: now[0])
+    now[0] = 1e9
+    assert never() is False

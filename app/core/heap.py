@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import time
 from collections.abc import Callable
 
 GC_THRESHOLDS = (50_000, 20, 10)
@@ -80,3 +81,20 @@ def trim_allocator() -> bool:
         return False
     _TRIM(0)
     return True
+
+
+class PeriodicTrim:
+    """Trim the allocator from a process's own loop at most once every ``every_s`` wall
+    seconds (0: never), so a worker's loop need not keep the time of its last trim."""
+
+    def __init__(self, every_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.every_s = every_s
+        self.clock = clock
+        self.last = clock()
+
+    def __call__(self) -> bool:
+        """Trim if a period has passed since the last trim; True when it trimmed."""
+        if not self.every_s or self.clock() - self.last < self.every_s:
+            return False
+        self.last = self.clock()
+        return trim_allocator()

@@ -11,7 +11,7 @@ from typing import Any
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
-from app.core.heap import map_large_allocations, settle_heap, trim_allocator
+from app.core.heap import PeriodicTrim, map_large_allocations, settle_heap
 from app.core.logging import configure_logging
 from app.core.time import now_ms
 from app.workers.coverage import CoverageLedger
@@ -82,7 +82,8 @@ def worker_main(shard_id: int, settings_json: str, inbox: Connection, outbox: Co
     send(outbox, encode([Ready(shard_id)]))
     batches = Inbox(inbox)
     ledger: CoverageLedger[str] = CoverageLedger()
-    last_stats = last_trim = time.monotonic()
+    last_stats = time.monotonic()
+    trim = PeriodicTrim(settings.heap_trim_every_s)
     while not stopping:
         drained = _drain(
             batches,
@@ -106,10 +107,7 @@ def worker_main(shard_id: int, settings_json: str, inbox: Connection, outbox: Co
         if time.monotonic() - last_stats >= settings.worker_stats_every_s:
             out.append(shard.stats())
             last_stats = time.monotonic()
-        trim_every = settings.heap_trim_every_s
-        if trim_every and time.monotonic() - last_trim >= trim_every:
-            trim_allocator()
-            last_trim = time.monotonic()
+        trim()
         try:
             if out:
                 send(outbox, encode(out))

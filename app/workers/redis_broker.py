@@ -32,7 +32,7 @@ import redis
 
 from app.core.config import Settings
 from app.core.db import make_engine, make_sessionmaker
-from app.core.heap import map_large_allocations, settle_heap, trim_allocator
+from app.core.heap import PeriodicTrim, map_large_allocations, settle_heap
 from app.core.outages import is_outage, retry_through_outage
 from app.core.time import now_ms
 from app.workers.broker import ResultHandler
@@ -277,7 +277,7 @@ class RedisWorker:
         self._last_lease = 0.0
         self._last_manage = 0.0
         self._last_stats = 0.0
-        self._last_trim = time.monotonic()
+        self._trim = PeriodicTrim(settings.heap_trim_every_s)
         self._settle_until = 0.0
 
     # -- leases ------------------------------------------------------------------------
@@ -482,10 +482,7 @@ class RedisWorker:
             self._last_stats = time.monotonic()
             if stats:
                 self.client.publish(RESULTS, encode(stats))
-        trim_every = self.settings.heap_trim_every_s
-        if trim_every and time.monotonic() - self._last_trim >= trim_every:
-            trim_allocator()
-            self._last_trim = time.monotonic()
+        self._trim()
 
 
 def redis_worker_main(settings_json: str) -> None:
