@@ -44,14 +44,9 @@ from app.engine.particle.inputs import FilterInput
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.update import update_filters
 from app.engine.pdr import Pdr, PdrParams
-from app.engine.preprocess import (
-    Preprocessor,
-    PreprocessParams,
-    Window,
-    mean_by_transmitter,
-)
+from app.engine.preprocess import Preprocessor, PreprocessParams, Window
 from app.engine.radiomap import RadioMap
-from app.engine.samples import Batch, Estimate
+from app.engine.samples import Batch, Estimate, Fixes
 from app.engine.site import SiteModel
 
 
@@ -189,6 +184,56 @@ def floor_evidence(
     return FloorEvidence(site.transmitters.floor, len(site.floors), params, radio_maps)
 
 
+def _last_fix(fixes: Fixes, floor: int) -> tuple[float, float, float] | None:
+    """Return the window's last positional measurement on ``floor``: x, y (m) and radius (m)."""
+    if not len(fixes):
+        return None
+    on_floor = np.flatnonzero(fixes.floor == floor)
+    if not on_floor.size:
+        return None
+    j = on_floor[-1]
+    return float(fixes.xyz[j, 0]), float(fixes.xyz[j, 1]), float(fixes.std[j])
+
+
+@dataclass(frozen=True)
+class HeardByFloor:
+    """The transmitters each device heard in a window, per floor: sorted, mean reading, count."""
+
+    tx: np.ndarray
+    mean: np.ndarray
+    count: np.ndarray
+    bounds: list[int]
+    """Group g = device · F + floor holds rows ``bounds[g]:bounds[g + 1]``."""
+    n_floors: int
+
+    @classmethod
+    def of_readings(
+        cls,
+        device: np.ndarray,
+        tx_floor: np.ndarray,
+        tx: np.ndarray,
+        rssi: np.ndarray,
+        n_devices: int,
+        n_floors: int,
+    ) -> HeardByFloor:
+        """Group readings (device row, transmitter floor and index, dBm) by device and floor."""
+        placed = tx_floor >= 0
+        n_tx = int(tx.max()) + 1 if tx.size else 1
+        group = device[placed] * n_floors + tx_floor[placed]
+        key, inverse = np.unique(group * n_tx + tx[placed], return_inverse=True)
+        count = np.bincount(inverse, minlength=key.size)
+        # s̄_m = Σ s_k / n_m over the readings of transmitter m
+        mean = np.bincount(inverse, weights=rssi[placed], minlength=key.size) / count
+        bounds = np.searchsorted(key // n_tx, np.arange(n_devices * n_floors + 1))
+        return cls(key % n_tx, mean, count.astype(float), bounds.tolist(), n_floors)
+
+    def of(self, device: int, floor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return one device's transmitters on one floor, their mean readings and counts."""
+        g = device * self.n_floors + floor
+        lo, hi = self.bounds[g], self.bounds[g + 1]
+        return self.tx[lo:hi], self.mean[lo:hi], self.count[lo:hi]
+
+
 class DeviceState:
     """One device's positioning state outside the particle bank."""
 
@@ -316,11 +361,7 @@ class PositioningEngine:
         depth = max([len(w) for w in windows.values()] + [0])
         for k in range(depth):
             due = {d: w[k] for d, w in windows.items() if k < len(w)}
-            loglik = self._floor_evidence(due)
-            plans = {
-                d: self._plan(self.devices[d], win, loglik[i])
-                for i, (d, win) in enumerate(due.items())
-            }
+            plans = dict(zip(due, self._plan(due), strict=True))
             by_floor: dict[int, list[tuple[str, FilterInput]]] = {}
             for d, (_, inputs) in plans.items():
                 for f, inp in inputs:
@@ -343,71 +384,81 @@ class PositioningEngine:
                 results[d].append(out)
         return results
 
-    def _floor_evidence(self, due: dict[str, Window]) -> np.ndarray:
-        """Return the floor filter's log-likelihoods (D, F) of the due windows, in ``due`` order."""
-        n_floors = len(self.site.floors)
-        if not floor_selector_class(self.params.floors).uses_evidence:
-            return np.zeros((len(due), n_floors))
-        wins = list(due.values())
-        sizes = [len(w.rssi) for w in wins]
-        device = np.repeat(np.arange(len(wins)), sizes)
-        tx = np.concatenate([w.rssi.tx for w in wins]) if wins else np.zeros(0, np.intp)
-        rssi = np.concatenate([w.rssi.rssi for w in wins]) if wins else np.zeros(0)
-        return self.evidence.log_likelihood(device, tx.astype(np.intp), rssi, len(wins))
+    def _plan(self, due: dict[str, Window]) -> list[tuple[int, list[tuple[int, FilterInput]]]]:
+        """Floor selection for the due windows; return each one's floor and filter inputs.
 
-    def _plan(
-        self, dev: DeviceState, win: Window, loglik: np.ndarray
-    ) -> tuple[int, list[tuple[int, FilterInput]]]:
-        """Floor selection for one window; return the chosen floor and the filter inputs."""
+        The readings of all the windows are worked on together: their floors
+        and path-loss A looked up once, each transmitter's mean taken once per
+        device and floor, the floor selectors updated in one call.
+        """
         p = self.params
-        rssi = win.rssi
-        tx_floor = self._tx_floor[rssi.tx]
-        window = FloorWindow(
-            win.t1, tx_floor, rssi.rssi, self._tx_a[rssi.tx], loglik, win.pressure.hpa
+        devs = [self.devices[d] for d in due]
+        wins = list(due.values())
+        bounds = np.cumsum([0] + [len(w.rssi) for w in wins])
+        tx = np.concatenate([w.rssi.tx for w in wins] + [np.zeros(0, np.int32)]).astype(np.intp)
+        rssi = np.concatenate([w.rssi.rssi for w in wins] + [np.zeros(0)])
+        device = np.repeat(np.arange(len(wins)), np.diff(bounds))
+        tx_floor, tx_a = self._tx_floor[tx], self._tx_a[tx]
+        loglik = self._floor_evidence(device, tx, rssi, len(wins))
+        selectors = [dev.floors for dev in devs]
+        ranked = floor_selector_class(p.floors).update_many(
+            selectors,
+            [
+                FloorWindow(
+                    w.t1,
+                    tx_floor[lo:hi],
+                    rssi[lo:hi],
+                    tx_a[lo:hi],
+                    loglik[i],
+                    w.pressure.hpa,
+                )
+                for i, (w, lo, hi) in enumerate(zip(wins, bounds[:-1], bounds[1:], strict=True))
+            ],
         )
-        ranked = dev.floors.update(window)
-        self._release_idle(dev, win.t1)
-        if ranked.size == 0:
-            return -1, []
-        # each transmitter is on one floor: averaged once, then split by floor
-        heard, heard_mean, heard_count = mean_by_transmitter(rssi.tx, rssi.rssi)
-        heard_floor = self._tx_floor[heard]
-        no_imu = win.t1 - dev.imu_t > p.imu_timeout_ms
-        walk_s = min((win.t1 - dev.last_t) / 1000.0, p.max_walk_s) if no_imu else 0.0
-        dev.last_t = win.t1
-        inputs = []
-        for f in ranked[: p.max_active_floors].tolist():
-            pick = heard_floor == f
-            tx, mean, count = heard[pick], heard_mean[pick], heard_count[pick]
-            if f not in dev.slots:
-                dev.slots[f] = self.bank.allocate()
-            on_floor = np.flatnonzero(win.fixes.floor == f)
-            fix = None
-            if on_floor.size:
-                i = on_floor[-1]
-                fix = (
-                    float(win.fixes.xyz[i, 0]),
-                    float(win.fixes.xyz[i, 1]),
-                    float(win.fixes.std[i]),
+        heard = HeardByFloor.of_readings(
+            device, tx_floor, tx, rssi, len(wins), len(self.site.floors)
+        )
+        plans: list[tuple[int, list[tuple[int, FilterInput]]]] = []
+        for i, (dev, win) in enumerate(zip(devs, wins, strict=True)):
+            self._release_idle(dev, win.t1)
+            if ranked[i].size == 0:
+                plans.append((-1, []))
+                continue
+            no_imu = win.t1 - dev.imu_t > p.imu_timeout_ms
+            walk_s = min((win.t1 - dev.last_t) / 1000.0, p.max_walk_s) if no_imu else 0.0
+            dev.last_t = win.t1
+            inputs = []
+            for f in ranked[i][: p.max_active_floors].tolist():
+                if f not in dev.slots:
+                    dev.slots[f] = self.bank.allocate()
+                tx_f, mean, count = heard.of(i, f)
+                inputs.append(
+                    (
+                        f,
+                        FilterInput(
+                            slot=dev.slots[f],
+                            t=win.t1,
+                            tx=tx_f,
+                            rssi=mean,
+                            count=count,
+                            rng=dev.rng,
+                            step_length=win.steps.length,
+                            step_heading=win.steps.heading,
+                            walk_s=max(walk_s, 0.0),
+                            fix=_last_fix(win.fixes, f),
+                        ),
+                    )
                 )
-            inputs.append(
-                (
-                    f,
-                    FilterInput(
-                        slot=dev.slots[f],
-                        t=win.t1,
-                        tx=tx.astype(np.intp),
-                        rssi=mean,
-                        count=count.astype(float),
-                        rng=dev.rng,
-                        step_length=win.steps.length,
-                        step_heading=win.steps.heading,
-                        walk_s=max(walk_s, 0.0),
-                        fix=fix,
-                    ),
-                )
-            )
-        return int(ranked[0]), inputs
+            plans.append((int(ranked[i][0]), inputs))
+        return plans
+
+    def _floor_evidence(
+        self, device: np.ndarray, tx: np.ndarray, rssi: np.ndarray, n_devices: int
+    ) -> np.ndarray:
+        """Return the floor filter's log-likelihoods (D, F) of the due windows' readings."""
+        if not floor_selector_class(self.params.floors).uses_evidence:
+            return np.zeros((n_devices, len(self.site.floors)))
+        return self.evidence.log_likelihood(device, tx, rssi, n_devices)
 
     def _release_idle(self, dev: DeviceState, t: int) -> None:
         """Free filters of floors silent for longer than T_r: they would rescatter anyway."""

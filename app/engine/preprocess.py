@@ -76,17 +76,6 @@ def split_sorted(t: np.ndarray, window_ms: int) -> tuple[np.ndarray, np.ndarray]
     return w[bounds[:-1]], bounds
 
 
-def mean_by_transmitter(
-    tx: np.ndarray, rssi: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return the heard transmitters (sorted), their mean RSSI (dBm) and reading counts."""
-    keys, inverse = np.unique(np.asarray(tx), return_inverse=True)
-    count = np.bincount(inverse, minlength=keys.size)
-    # s̄_m = Σ s_k / n_m over the readings of transmitter m
-    mean = np.bincount(inverse, weights=rssi, minlength=keys.size) / count
-    return keys, mean, count
-
-
 def _take(arrays: Any, index: np.ndarray) -> Any:
     """Return a copy of a samples dataclass keeping rows ``index``."""
     return type(arrays)(**{k: v[index] for k, v in vars(arrays).items()})

@@ -11,7 +11,7 @@ from app.engine.floors.evidence import (
     strongest_means,
     thin_points,
 )
-from app.engine.floors.forward import FloorFilter, forward_step, transition_matrix
+from app.engine.floors.forward import FloorFilter, forward_steps, transition_matrix
 from app.engine.floors.params import FloorParams
 from app.engine.floors.patent import (
     PatentFloorSelector,
@@ -21,7 +21,7 @@ from app.engine.floors.patent import (
     window_sums,
 )
 from app.engine.floors.pressure import pressure_climb
-from app.engine.floors.window import FloorWindow
+from app.engine.floors.window import NEVER, FloorWindow
 from app.engine.radiomap import RadioMap
 from app.workers.snapshots import decode, encode
 
@@ -301,11 +301,11 @@ def test_transition_rows_are_distributions_and_a_climb_favours_its_direction() -
 
 def test_forward_step_matches_hand_computed_posterior() -> None:
     T = transition_matrix(np.array([0, 1]), 0.1, 0.0, 0.0, 2.0)
-    b = forward_step(np.array([0.8, 0.2]), T, 1, np.array([0.0, np.log(3.0)]))
+    b = forward_steps(np.array([[0.8, 0.2]]), T[None], np.array([[0.0, np.log(3.0)]]))[0]
     # π = (0.8 · 0.9 + 0.2 · 0.1, 0.8 · 0.1 + 0.2 · 0.9) = (0.74, 0.26); b ∝ (0.74, 0.78)
     assert b == pytest.approx([0.74 / 1.52, 0.78 / 1.52])
     # two windows: π = b T²
-    b2 = forward_step(np.array([1.0, 0.0]), T, 2, np.zeros(2))
+    b2 = forward_steps(np.array([[1.0, 0.0]]), (T @ T)[None], np.zeros((1, 2)))[0]
     assert b2 == pytest.approx([0.82, 0.18])
 
 
@@ -409,3 +409,39 @@ def test_filter_snapshot_round_trips_through_the_codec_and_resumes_exactly() -> 
             twin.update(_filter_window(1000 * k, ll, heard, pressure)).tolist()
         )
         assert f.belief.tolist() == twin.belief.tolist()
+
+
+def test_a_snapshot_with_the_ring_of_heard_counts_resumes_with_each_floors_last_time() -> None:
+    ring = {
+        "belief": np.array([0.2, 0.8]),
+        "last_t": 3000,
+        "t": np.array([1000, 2000, 3000, NEVER]),
+        "heard": np.array([[2.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 0.0]]),
+        "pos": 3,
+        "current": 1,
+    }
+    f = FloorFilter(np.array([0, 1]), PARAMS, ring)
+    assert f.heard_t.tolist() == [3000, 2000]
+    # at 12 s floor 0 (heard at 3 s) is still active, floor 1 (2 s) is not but leads the belief
+    assert f.update(_filter_window(12_000, np.zeros(2), np.zeros(2))).tolist() == [1, 0]
+    assert f.update(_filter_window(13_000, np.zeros(2), np.zeros(2))).size == 0
+
+
+def test_filters_updated_together_end_where_each_alone_would() -> None:
+    levels = np.array([0, 1, 2])
+    alone = [FloorFilter(levels, PARAMS) for _ in range(3)]
+    together = [FloorFilter(levels, PARAMS) for _ in range(3)]
+    rng = np.random.default_rng(3)
+    for k in range(15):
+        # device 1 skips windows (a gap), device 2 climbs a storey at 8 s
+        windows = [
+            _filter_window(1000 * k, rng.normal(0.0, 2.0, 3), rng.integers(0, 3, 3))
+            for _ in range(3)
+        ]
+        hpa = np.array([1000.0 - (0.6 if k >= 8 else 0.0)])
+        windows[2] = FloorWindow(**{**vars(windows[2]), "pressure_hpa": hpa})
+        due = [0, 2] if k % 3 else [0, 1, 2]
+        expected = [alone[i].update(windows[i]).tolist() for i in due]
+        got = FloorFilter.update_many([together[i] for i in due], [windows[i] for i in due])
+        assert [r.tolist() for r in got] == expected
+        assert [together[i].belief.tolist() for i in due] == [alone[i].belief.tolist() for i in due]

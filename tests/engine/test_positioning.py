@@ -9,6 +9,7 @@ import pytest
 
 from app.engine.plan import FloorPlan, burn_segments
 from app.engine.positioning import (
+    HeardByFloor,
     ParticleTracker,
     PositioningEngine,
     PositioningParams,
@@ -207,3 +208,19 @@ def test_patent_floor_selection_stays_selectable_and_waits_for_its_dwell() -> No
     assert same(run_floors(tracker, [1] * 3, 22), run_floors(restored, [1] * 3, 22))
     with pytest.raises(ValueError, match="floor selection"):
         ParticleTracker(site, replace(PARAMS, floors=replace(PARAMS.floors, method="x")))
+
+
+def test_readings_are_averaged_per_transmitter_and_grouped_by_device_and_floor() -> None:
+    device = np.array([0, 0, 0, 1, 0, 0, 1])
+    tx = np.array([1, 0, 3, 2, 1, 1, 4])
+    # transmitter 4 has no floor
+    tx_floor = np.array([0, 0, 1, 1, -1])[tx]
+    rssi = np.array([-50.0, -60.0, -70.0, -80.0, -52.0, -54.0, -40.0])
+    heard = HeardByFloor.of_readings(device, tx_floor, tx, rssi, 2, 2)
+    tx0, mean0, count0 = heard.of(0, 0)
+    assert tx0.tolist() == [0, 1] and mean0.tolist() == [-60.0, -52.0]
+    assert count0.tolist() == [1.0, 3.0]
+    assert [a.tolist() for a in heard.of(0, 1)] == [[3], [-70.0], [1.0]]
+    # device 1's reading of transmitter 4 counts nowhere
+    assert [a.tolist() for a in heard.of(1, 0)] == [[], [], []]
+    assert [a.tolist() for a in heard.of(1, 1)] == [[2], [-80.0], [1.0]]

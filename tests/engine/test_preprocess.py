@@ -9,7 +9,6 @@ from app.engine.preprocess import (
     Preprocessor,
     PreprocessParams,
     Window,
-    mean_by_transmitter,
     split_sorted,
 )
 from app.engine.samples import Fixes, Pressure, RssiReadings
@@ -103,16 +102,6 @@ def test_snapshot_resumes_with_pending_samples() -> None:
     b = Preprocessor(PreprocessParams(), a.snapshot())
     rest = _cut(stream, 13_500, 20_000)
     assert _flat(a.push(rssi=rest) + a.flush()) == _flat(b.push(rssi=rest) + b.flush())
-
-
-def test_readings_averaged_per_transmitter() -> None:
-    tx = np.array([1, 0, 3, 2, 1, 1])
-    keys, mean, count = mean_by_transmitter(
-        tx, np.array([-50.0, -60.0, -70.0, -80.0, -52.0, -54.0])
-    )
-    assert keys.tolist() == [0, 1, 2, 3]
-    assert mean.tolist() == [-60.0, -52.0, -80.0, -70.0]
-    assert count.tolist() == [1, 3, 1, 1]
 
 
 def test_second_by_second_pushes_release_what_one_push_of_everything_does() -> None:

@@ -16,6 +16,8 @@ lowers the probability of any change to ``flat_switch_prob``.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -61,31 +63,40 @@ def transition_matrix(
     return T
 
 
-def forward_step(belief: np.ndarray, T: np.ndarray, windows: int, loglik: np.ndarray) -> np.ndarray:
-    """Return the belief after ``windows`` transitions and one window's evidence.
+def forward_steps(belief: np.ndarray, power: np.ndarray, loglik: np.ndarray) -> np.ndarray:
+    """Return the beliefs of many devices after their transitions and one window's evidence.
 
     Parameters
     ----------
-    belief : ndarray, shape (F,)
-        P(floor) after the previous window.
-    T : ndarray, shape (F, F)
-        One window's transition (``transition_matrix``).
-    windows : int
-        Windows elapsed since the previous one (≥ 1).
-    loglik : ndarray, shape (F,)
-        ln p(readings | floor), up to a constant.
+    belief : ndarray, shape (D, F)
+        P(floor) of each device after its previous window.
+    power : ndarray, shape (D, F, F)
+        Each device's transition since then: ``transition_matrix`` to the
+        power of the windows elapsed.
+    loglik : ndarray, shape (D, F)
+        ln p(readings | floor), up to a constant per device.
     """
-    # π = b Tⁿ
-    windows = max(int(windows), 1)
-    prior = belief @ (T if windows == 1 else np.linalg.matrix_power(T, windows))
+    # π_f = Σ_g b_g P_gf, summed in g order for every row alike
+    prior = (belief[:, :, None] * power).sum(axis=1)
     # b' ∝ π ⊙ exp(ln L - max ln L)
-    post = prior * np.exp(loglik - np.max(loglik))
-    total = post.sum()
-    return post / total if total > 0 else np.full(belief.size, 1.0 / belief.size)
+    post = prior * np.exp(loglik - loglik.max(axis=1, keepdims=True))
+    total = post.sum(axis=1, keepdims=True)
+    return np.where(total > 0, post / np.where(total > 0, total, 1.0), 1.0 / belief.shape[1])
+
+
+@functools.lru_cache(maxsize=64)
+def _flat_transition(levels: tuple[int, ...], eps: float, params: FloorParams) -> np.ndarray:
+    """Return ``transition_matrix`` without a climb, read-only: one per site and ε."""
+    T = transition_matrix(np.array(levels), eps, 0.0, params.climb_switch_prob, params.climb_min_m)
+    T.flags.writeable = False
+    return T
 
 
 class FloorFilter:
     """Forward filter over one device's floor.
+
+    A floor is active while its transmitters were heard within
+    ``history_ms``: the filter keeps the last time each floor was heard.
 
     Parameters
     ----------
@@ -93,7 +104,8 @@ class FloorFilter:
         Storey of each floor of the site.
     params : FloorParams
     state : dict, optional
-        A :meth:`snapshot` to resume from.
+        A :meth:`snapshot` to resume from; one that still holds the ring of
+        heard counts it replaced resumes too.
     """
 
     uses_evidence: ClassVar[bool] = True
@@ -105,45 +117,27 @@ class FloorFilter:
         self.levels = np.asarray(levels, dtype=np.int64)
         self.params = params
         n = self.levels.size
-        size = params.history_ms // params.window_ms + 1
         state = state or {}
         self.belief = np.asarray(state.get("belief", np.full(n, 1.0 / max(n, 1))), float).copy()
         self.last_t = int(state.get("last_t", NEVER))
-        self.t = np.asarray(state.get("t", np.full(size, NEVER)), dtype=np.int64).copy()
-        self.heard = np.asarray(state.get("heard", np.zeros((size, n))), float).copy()
-        self.pos = int(state.get("pos", 0))
+        self.heard_t = _heard_times(state, n)
         self.pressure = PressureHistory(state)
         self.current = int(state.get("current", -1))
-        self._flat_T: dict[float, np.ndarray] = {}
 
     def snapshot(self) -> dict[str, Any]:
-        """Return the belief, the recently heard floors and the pressure history."""
+        """Return the belief, when each floor was last heard and the pressure history."""
         return {
             "belief": self.belief.copy(),
             "last_t": self.last_t,
-            "t": self.t.copy(),
-            "heard": self.heard.copy(),
-            "pos": self.pos,
+            "heard_t": self.heard_t.copy(),
             **self.pressure.snapshot(),
             "current": self.current,
         }
 
-    def _transition(self, eps: float, climb: float) -> np.ndarray:
-        """Return ``transition_matrix`` for this window; kept per ε while nothing is climbed."""
-        p = self.params
-        if abs(climb) >= p.climb_min_m:
-            return transition_matrix(self.levels, eps, climb, p.climb_switch_prob, p.climb_min_m)
-        T = self._flat_T.get(eps)
-        if T is None:
-            T = transition_matrix(self.levels, eps, 0.0, p.climb_switch_prob, p.climb_min_m)
-            self._flat_T[eps] = T
-        return T
-
     def update(self, window: FloorWindow) -> np.ndarray:
         """Add one window and return the active floors, the chosen floor first.
 
-        The window's ``loglik`` is its evidence (none: the transition alone); a
-        floor is active when its transmitters were heard within ``history_ms``.
+        The window's ``loglik`` is its evidence (none: the transition alone).
 
         Returns
         -------
@@ -151,26 +145,74 @@ class FloorFilter:
             The chosen floor, then the other active floors by decreasing
             belief; empty when no floor was heard within ``history_ms``.
         """
-        p = self.params
-        t, n = window.t, self.levels.size
-        loglik = np.zeros(n) if window.loglik is None else window.loglik
-        heard = np.bincount(np.asarray(window.floor, np.intp), minlength=n)
-        barometer, climb = self.pressure.update(t, window.pressure_hpa, p)
-        # with a barometer, floors change only in the direction of a climb
-        eps = p.flat_switch_prob if barometer else p.switch_prob
-        T = self._transition(eps, climb)
+        return self.update_many([self], [window])[0]
+
+    @classmethod
+    def update_many(
+        cls, filters: Sequence[FloorFilter], windows: Sequence[FloorWindow]
+    ) -> list[np.ndarray]:
+        """:meth:`update` for many devices of one site, one numpy pass per step.
+
+        A device's result does not depend on which others share the call:
+        every row is computed on its own, in the same order of operations.
+        """
+        if not filters:
+            return []
+        p = filters[0].params
+        d, n = len(filters), filters[0].levels.size
+        t = np.array([w.t for w in windows], dtype=np.int64)
+        loglik = np.stack([np.zeros(n) if w.loglik is None else w.loglik for w in windows])
+        belief = np.stack([f.belief for f in filters])
+        heard_t = np.stack([f.heard_t for f in filters])
+        last_t = np.array([f.last_t for f in filters], dtype=np.int64)
         # windows since the previous update: a gap lets the belief relax towards uniform
-        windows = 1 if self.last_t == NEVER else max((t - self.last_t) // p.window_ms, 1)
-        self.belief = forward_step(self.belief, T, windows, loglik)
-        self.last_t = t
-        self.t[self.pos] = t
-        self.heard[self.pos] = heard
-        self.pos = (self.pos + 1) % self.t.size
-        active = np.flatnonzero(self.heard[self.t > t - p.history_ms].sum(axis=0) > 0)
-        if active.size == 0:
-            self.current = -1
-            return active
-        self.current = int(np.argmax(self.belief))
-        rest = active[active != self.current]
-        rest = rest[np.argsort(-self.belief[rest], kind="stable")]
-        return np.concatenate([[self.current], rest]).astype(np.intp)
+        gap = np.where(last_t == NEVER, 1, np.maximum((t - last_t) // p.window_ms, 1))
+        levels = tuple(filters[0].levels.tolist())
+        # P = Tⁿ per device: the flat transition of its ε, or its own where it climbs
+        power = np.empty((d, n, n))
+        for i, (f, w) in enumerate(zip(filters, windows, strict=True)):
+            barometer, climb = f.pressure.update(int(t[i]), w.pressure_hpa, p)
+            # with a barometer, floors change only in the direction of a climb
+            eps = p.flat_switch_prob if barometer else p.switch_prob
+            T = _flat_transition(levels, eps, p)
+            if abs(climb) >= p.climb_min_m:
+                T = transition_matrix(f.levels, eps, climb, p.climb_switch_prob, p.climb_min_m)
+            power[i] = T if gap[i] == 1 else np.linalg.matrix_power(T, int(gap[i]))
+        belief = forward_steps(belief, power, loglik)
+        # the floors of the window's readings were heard now
+        sizes = [len(w.floor) for w in windows]
+        device = np.repeat(np.arange(d), sizes)
+        floor = np.concatenate([np.asarray(w.floor, np.intp) for w in windows] + [device[:0]])
+        heard = np.bincount(device * n + floor, minlength=d * n).reshape(d, n) > 0
+        heard_t = np.where(heard, t[:, None], heard_t)
+        active = heard_t > (t - p.history_ms)[:, None]
+        # the chosen floor (the belief's argmax) first, then the active floors by belief
+        order = np.argsort(-belief, axis=1, kind="stable")
+        ranked_active = np.take_along_axis(active, order, axis=1)
+        ranked_active[:, 0] = True
+        out = []
+        for i, f in enumerate(filters):
+            f.belief, f.heard_t, f.last_t = belief[i], heard_t[i], int(t[i])
+            if active[i].any():
+                f.current = int(order[i, 0])
+                out.append(order[i][ranked_active[i]])
+            else:
+                f.current = -1
+                out.append(order[i, :0])
+        return out
+
+
+def _heard_times(state: dict[str, Any], n: int) -> np.ndarray:
+    """Return when each floor was last heard (ms): from a snapshot, or never.
+
+    A snapshot from before keeps a ring of windows' times ``t`` and heard
+    counts ``heard`` (windows, F) instead: each floor's newest window with a
+    reading is the same thing.
+    """
+    if "heard_t" in state:
+        return np.asarray(state["heard_t"], dtype=np.int64).copy()
+    if "heard" in state:
+        t = np.asarray(state["t"], dtype=np.int64)
+        heard = np.asarray(state["heard"], dtype=float) > 0
+        return np.where(heard, t[:, None], NEVER).max(axis=0, initial=NEVER)
+    return np.full(n, NEVER, dtype=np.int64)

@@ -16,6 +16,7 @@ challenger's direction switches at once, a flat barometer makes radio wait
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -169,6 +170,13 @@ class PatentFloorSelector:
             "candidate": self.candidate,
             "lead": self.lead,
         }
+
+    @classmethod
+    def update_many(
+        cls, selectors: Sequence[PatentFloorSelector], windows: Sequence[FloorWindow]
+    ) -> list[np.ndarray]:
+        """:meth:`update` for many devices, one after another."""
+        return [s.update(w) for s, w in zip(selectors, windows, strict=True)]
 
     def update(self, window: FloorWindow) -> np.ndarray:
         """Add one window's readings and return the active floors, the chosen floor first.

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Protocol
+from collections.abc import Sequence
+from typing import Any, ClassVar, Protocol, Self
 
 import numpy as np
 
@@ -33,6 +34,13 @@ class FloorSelector(Protocol):
 
     def update(self, window: FloorWindow) -> np.ndarray:
         """Add one window; return the active floors, the chosen floor first, empty for none."""
+        ...
+
+    @classmethod
+    def update_many(
+        cls, selectors: Sequence[Self], windows: Sequence[FloorWindow]
+    ) -> list[np.ndarray]:
+        """:meth:`update` for many devices of one site, each as if alone."""
         ...
 
     def snapshot(self) -> dict[str, Any]:
