@@ -86,12 +86,24 @@ def _slice(arrays: Any, lo: int, hi: int | None) -> Any:
     return type(arrays)(**{k: v[lo:hi] for k, v in vars(arrays).items()})
 
 
+def _head(arrays: Any, n: int) -> Any:
+    """Return the first ``n`` rows of a samples dataclass: itself when that is all of it."""
+    return arrays if n == len(arrays) else _slice(arrays, 0, n)
+
+
+def _tail(arrays: Any, n: int) -> Any:
+    """Return a samples dataclass without its first ``n`` rows: the shared empty one for none."""
+    return _slice(arrays, n, None) if n < len(arrays) else type(arrays)()
+
+
 def _concat(a: Any, b: Any) -> Any:
     """Concatenate two samples dataclasses of the same type row-wise."""
     return type(a)(**{k: np.concatenate([v, getattr(b, k)]) for k, v in vars(a).items()})
 
 
 _KINDS = ("rssi", "steps", "fixes", "pressure")
+_NEVER = int(np.iinfo(np.int64).min)
+"""``newest`` and ``open_from`` before any sample."""
 _EMPTY = {"rssi": RssiReadings, "steps": Steps, "fixes": Fixes, "pressure": Pressure}
 
 
@@ -108,8 +120,8 @@ class Preprocessor:
     def __init__(self, params: PreprocessParams, state: dict[str, Any] | None = None) -> None:
         self.params = params
         state = state or {}
-        self.open_from = int(state.get("open_from", np.iinfo(np.int64).min))
-        self.newest = int(state.get("newest", np.iinfo(np.int64).min))
+        self.open_from = int(state.get("open_from", _NEVER))
+        self.newest = int(state.get("newest", _NEVER))
         self.pending: dict[str, Any] = {}
         for kind in _KINDS:
             saved = state.get(kind)
@@ -137,16 +149,32 @@ class Preprocessor:
         pressure: Pressure | None = None,
     ) -> list[Window]:
         """Add time-ordered measurements; return the windows they complete, oldest first."""
-        for kind, new in zip(_KINDS, (rssi, steps, fixes, pressure), strict=True):
-            if new is not None and len(new):
-                old = self.pending[kind]
-                self.pending[kind] = _concat(old, new) if len(old) else new
-                self.newest = max(self.newest, int(new.t.max()))
-        if self.newest == np.iinfo(np.int64).min:
+        new = {
+            kind: arrays
+            for kind, arrays in zip(_KINDS, (rssi, steps, fixes, pressure), strict=True)
+            if arrays is not None and len(arrays)
+        }
+        first = {kind: int(arrays.t.min()) for kind, arrays in new.items()}
+        self.newest = max([self.newest] + [int(a.t.max()) for a in new.values()])
+        if self.newest == _NEVER:
             return []
         w = self.params.window_ms
         # windows ending at or before the newest sample's window start are complete
-        return self._release(self.newest // w * w)
+        before = self.newest // w * w
+        # a device posting each second sends only samples of the window it opens: the
+        # windows its last batch left pending are released before they join, not cut out after
+        if all(max(t // w * w, self.open_from) >= before for t in first.values()):
+            windows = self._release(before)
+            self._append(new)
+            return windows
+        self._append(new)
+        return self._release(before)
+
+    def _append(self, new: dict[str, Any]) -> None:
+        """Add samples behind the pending ones of their kind."""
+        for kind, arrays in new.items():
+            old = self.pending[kind]
+            self.pending[kind] = _concat(old, arrays) if len(old) else arrays
 
     def flush(self) -> list[Window]:
         """Release every pending measurement, the last window possibly incomplete."""
@@ -199,9 +227,9 @@ class Preprocessor:
             cuts[kind] = cut
         if first is None:
             return []
-        parts = {k: _slice(self.pending[k], 0, c) for k, c in cuts.items() if c}
+        parts = {k: _head(self.pending[k], c) for k, c in cuts.items() if c}
         for kind, cut in cuts.items():
-            self.pending[kind] = _slice(self.pending[kind], cut, None)
+            self.pending[kind] = _tail(self.pending[kind], cut)
         w = self.params.window_ms
         self.open_from = first + w
         return [Window(t0=first, t1=first + w, **parts)]
