@@ -25,7 +25,7 @@ from scipy import signal
 
 from app.engine import pdr_kernel as kernel
 from app.engine.pdr_kernel import NO_TIME, StepRule
-from app.engine.samples import ImuSamples
+from app.engine.samples import ImuSamples, no_times, no_values
 
 
 @dataclass(frozen=True)
@@ -97,10 +97,10 @@ class Steps:
     heading source was available) and ``swing`` = a_max - a_min (m/s²).
     """
 
-    t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    length: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    heading: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    swing: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t: np.ndarray = field(default_factory=no_times)
+    length: np.ndarray = field(default_factory=no_values)
+    heading: np.ndarray = field(default_factory=no_values)
+    swing: np.ndarray = field(default_factory=no_values)
 
     def __len__(self) -> int:
         """Return the number of steps."""

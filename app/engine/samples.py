@@ -11,20 +11,49 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-_EMPTY: dict[tuple[tuple[int, ...], type], np.ndarray] = {}
 
-
-def _empty(shape: tuple[int, ...] = (0,), dtype: type = float) -> np.ndarray:
-    """Return an empty array of ``shape`` and ``dtype``, one shared per kind.
+def _shared_empty(shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """Return a read-only empty array: one of each kind is shared by every absent sample kind.
 
     Samples of an absent kind are the default of every batch and window a
     worker handles; an array with no elements holds nothing to share, and
     making a new one each time cost two dozen allocations a device a window.
     """
-    empty = _EMPTY.get((shape, dtype))
-    if empty is None:
-        empty = _EMPTY[(shape, dtype)] = np.zeros(shape, dtype=dtype)
+    empty: np.ndarray = np.zeros(shape, dtype=dtype)
+    empty.flags.writeable = False
     return empty
+
+
+_TIMES = _shared_empty((0,), np.int64)
+_INDICES = _shared_empty((0,), np.int32)
+_VALUES = _shared_empty((0,), float)
+_VECTORS = _shared_empty((0, 3), float)
+_QUATERNIONS = _shared_empty((0, 4), float)
+
+
+def no_times() -> np.ndarray:
+    """Return the shared empty array of times (ms)."""
+    return _TIMES
+
+
+def no_indices() -> np.ndarray:
+    """Return the shared empty array of table indices."""
+    return _INDICES
+
+
+def no_values() -> np.ndarray:
+    """Return the shared empty array of values."""
+    return _VALUES
+
+
+def no_vectors() -> np.ndarray:
+    """Return the shared empty array of 3-vectors."""
+    return _VECTORS
+
+
+def no_quaternions() -> np.ndarray:
+    """Return the shared empty array of quaternions."""
+    return _QUATERNIONS
 
 
 @dataclass
@@ -35,9 +64,9 @@ class RssiReadings:
     dropped (and counted) before they get here.
     """
 
-    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
-    tx: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
-    rssi: np.ndarray = field(default_factory=_empty)
+    t: np.ndarray = field(default_factory=no_times)
+    tx: np.ndarray = field(default_factory=no_indices)
+    rssi: np.ndarray = field(default_factory=no_values)
 
     def __len__(self) -> int:
         """Return the number of readings."""
@@ -52,9 +81,9 @@ class Sightings:
     point and the tag the unknown, the reverse of :class:`RssiReadings`.
     """
 
-    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
-    locator: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
-    rssi: np.ndarray = field(default_factory=_empty)
+    t: np.ndarray = field(default_factory=no_times)
+    locator: np.ndarray = field(default_factory=no_indices)
+    rssi: np.ndarray = field(default_factory=no_values)
 
     def __len__(self) -> int:
         """Return the number of sightings."""
@@ -65,11 +94,11 @@ class Sightings:
 class ImuSamples:
     """Inertial samples: acc (m/s²), gyro (rad/s), mag (µT), Android rotation vector."""
 
-    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
-    acc: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
-    gyro: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
-    mag: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
-    rot: np.ndarray = field(default_factory=lambda: _empty((0, 4)))
+    t: np.ndarray = field(default_factory=no_times)
+    acc: np.ndarray = field(default_factory=no_vectors)
+    gyro: np.ndarray = field(default_factory=no_vectors)
+    mag: np.ndarray = field(default_factory=no_vectors)
+    rot: np.ndarray = field(default_factory=no_quaternions)
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -80,10 +109,10 @@ class ImuSamples:
 class Ranges:
     """UWB two-way ranges (m) to anchors indexed into ``SiteModel.anchors``."""
 
-    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
-    anchor: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
-    range: np.ndarray = field(default_factory=_empty)
-    std: np.ndarray = field(default_factory=_empty)
+    t: np.ndarray = field(default_factory=no_times)
+    anchor: np.ndarray = field(default_factory=no_indices)
+    range: np.ndarray = field(default_factory=no_values)
+    std: np.ndarray = field(default_factory=no_values)
 
     def __len__(self) -> int:
         """Return the number of ranges."""
@@ -94,10 +123,10 @@ class Ranges:
 class Fixes:
     """Position fixes computed elsewhere (e.g. a UWB gateway): x, y, z (m), floor index."""
 
-    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
-    xyz: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
-    floor: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int32))
-    std: np.ndarray = field(default_factory=_empty)
+    t: np.ndarray = field(default_factory=no_times)
+    xyz: np.ndarray = field(default_factory=no_vectors)
+    floor: np.ndarray = field(default_factory=no_indices)
+    std: np.ndarray = field(default_factory=no_values)
 
     def __len__(self) -> int:
         """Return the number of fixes."""
@@ -108,8 +137,8 @@ class Fixes:
 class Pressure:
     """Barometer readings (hPa)."""
 
-    t: np.ndarray = field(default_factory=lambda: _empty(dtype=np.int64))
-    hpa: np.ndarray = field(default_factory=_empty)
+    t: np.ndarray = field(default_factory=no_times)
+    hpa: np.ndarray = field(default_factory=no_values)
 
     def __len__(self) -> int:
         """Return the number of samples."""
