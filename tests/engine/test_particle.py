@@ -212,17 +212,26 @@ def test_window_displacement_without_noise_sums_the_steps() -> None:
 
 
 def test_random_walk_speed_is_rayleigh_with_the_prior_scale() -> None:
-    u = np.linspace(0.0, 0.99, 100, dtype=np.float32)
-    noise = np.stack([u[None, :], np.full((1, 100), 0.5, np.float32)])
+    u = np.linspace(0.0, 0.99, 100)
+    # E = -ln(1 - u) is the standard exponential of quantile u
+    e = -np.log1p(-u)
+    noise = np.stack([e[None, :], np.full((1, 100), 0.5)]).astype(np.float32)
     alpha = np.zeros((1, 100), np.float32)
     dx, dy, direction = walk_displacement(np.array([[2.0]]), alpha, noise, P)
     assert np.all(direction == 0.0) and np.all(dx == 0.0)
     # |Δ| = F⁻¹(u) Δt with F the Rayleigh CDF of scale σ_v
-    exact = stats.rayleigh.ppf(u.astype(float), scale=P.walk_speed_mps) * 2.0
+    exact = stats.rayleigh.ppf(u, scale=P.walk_speed_mps) * 2.0
     np.testing.assert_allclose(dy[0], exact, rtol=1e-5, atol=1e-6)
-    # a uniform that rounded up to 1 in float32 still gives a finite move
-    one = np.ones((2, 1, 1), np.float32)
-    assert np.isfinite(walk_displacement(np.array([[1.0]]), alpha[:, :1], one, P)[1]).all()
+
+
+def test_a_filter_without_steps_walks_its_particles_at_rayleigh_speeds() -> None:
+    bank = settled_bank(2.5, 4.0)
+    update_filters(bank, MODEL, [silent(walk_s=1.0)], P)
+    moved = np.hypot(bank.x[0] - 2.5, bank.y[0] - 4.0)
+    moved = moved[moved > 0]
+    # the Rayleigh median σ_v √(2 ln 2) over one second; the few moves into walls stay put
+    assert len(moved) > 0.9 * N
+    assert np.median(moved) == pytest.approx(P.walk_speed_mps * np.sqrt(2 * np.log(2)), abs=0.07)
 
 
 def test_positional_measurement_pulls_by_ratio_of_radii() -> None:

@@ -4,7 +4,8 @@ A window's steps (one or two at walking cadence, a nearly straight metre or
 so) are summed into one move per particle and checked against the plan
 once. Motion noise is uniform with the configured standard deviation:
 numpy's Gaussian draws cost about four uniform ones, and the sum over
-windows is Gaussian anyway.
+windows is Gaussian anyway. Without steps a particle walks at random, its
+speed Rayleigh.
 """
 
 from __future__ import annotations
@@ -93,7 +94,9 @@ def walk_displacement(
     """Step 2 without an inertial stream: a correlated random walk with a speed prior.
 
     The speed prior is Rayleigh with scale σ_v, the speed of a velocity whose
-    components are independent N(0, σ_v²); it is drawn by inverting its CDF.
+    components are independent N(0, σ_v²): σ_v √(2E) with E a standard
+    exponential, which numpy draws by its ziggurat, without the logarithm
+    that inverting the Rayleigh CDF costs for every particle.
 
     Parameters
     ----------
@@ -102,7 +105,7 @@ def walk_displacement(
     alpha : ndarray of float32, shape (D, N)
         Current particle directions (rad).
     noise : ndarray of float32, shape (2, D, N)
-        Uniforms in [0, 1) for the speed and the turn.
+        Standard exponentials for the speed, uniforms in [0, 1) for the turn.
 
     Returns
     -------
@@ -113,9 +116,8 @@ def walk_displacement(
     turn_sd = np.float32(np.radians(params.walk_turn_std_deg))
     # turn ~ uniform with σ = σ_turn √Δt
     direction = alpha + (2.0 * noise[1] - 1.0) * (root3 * turn_sd * np.sqrt(dt))
-    # |v| = σ_v √(-2 ln(1 - u)), Δ = |v| Δt (sin α, cos α); u < 1 even after rounding to float32
-    u = np.minimum(noise[0], np.float32(1.0 - 2.0**-24))
-    speed = np.float32(params.walk_speed_mps) * np.sqrt(-2.0 * np.log1p(-u))
+    # |v| = σ_v √(2 E), Δ = |v| Δt (sin α, cos α)
+    speed = np.float32(params.walk_speed_mps) * np.sqrt(np.float32(2.0) * noise[0])
     step = speed * dt
     return step * np.sin(direction), step * np.cos(direction), direction
 
@@ -133,7 +135,8 @@ def displacements(
     alpha : ndarray of float32, shape (R, N)
         Current particle directions (rad).
     noise : ndarray of float32, shape (R, 2, N)
-        The rows' motion uniforms.
+        The rows' motion draws: uniforms, but for the speed of a row without
+        steps, which is a standard exponential (``walk_displacement``).
 
     Returns
     -------

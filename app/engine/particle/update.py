@@ -97,7 +97,13 @@ def _draw(
             rng.random(out=draws.scatter[i_s])
             i_s += 1
         if moving[r]:
-            rng.random(out=draws.motion[i_m], dtype=np.float32)
+            noise = draws.motion[i_m]
+            if inp.step_length.size:
+                rng.random(out=noise, dtype=np.float32)
+            else:
+                # a random walk's speed: see ``motion.walk_displacement``
+                rng.standard_exponential(out=noise[0], dtype=np.float32)
+                rng.random(out=noise[1], dtype=np.float32)
             i_m += 1
         if mutate[r]:
             rng.random(out=draws.mutate[i_u])
