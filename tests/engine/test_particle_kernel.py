@@ -9,7 +9,7 @@ import pytest
 
 from app.engine.particle import kernel, weights
 from app.engine.particle.bank import ParticleBank
-from app.engine.particle.estimate import FilterEstimate, cloud_estimate
+from app.engine.particle.estimate import RADIUS_EDGES, FilterEstimate, cloud_estimate
 from app.engine.particle.floor_model import build_floor_models
 from app.engine.particle.inputs import FilterInput
 from app.engine.particle.motion import settle_moves
@@ -178,3 +178,21 @@ def test_compiled_estimate_matches_the_reference_within_a_micrometre() -> None:
     np.testing.assert_allclose(got[1], ref[1], rtol=0, atol=1e-6)
     np.testing.assert_allclose(got[2], ref[2], rtol=0, atol=1e-6)
     np.testing.assert_array_equal(got[3], ref[3])
+
+
+def test_radius_bins_by_the_top_bits_are_the_reference_search_on_and_beside_every_edge() -> None:
+    edges = RADIUS_EDGES
+    rng = np.random.default_rng(5)
+    t = np.concatenate(
+        [
+            [0.0, np.inf],
+            edges,
+            np.nextafter(edges, np.float32(-np.inf)),
+            np.nextafter(edges, np.float32(np.inf)),
+            10.0 ** rng.uniform(-8.0, 6.0, 5000),
+        ]
+    ).astype(np.float32)[:, None]
+    # one particle a row: the row's quantile bin is the particle's bin
+    got = kernel._quantile_bins(t, np.ones(t.shape), 0.68, kernel._BIN_BELOW, kernel._EDGES_ABOVE)
+    expected = np.searchsorted(edges, t[:, 0], side="right")
+    assert got.tolist() == expected.tolist()

@@ -4,7 +4,7 @@ Each function here has a numpy twin elsewhere in the package (the
 reference) with the same signature and, by construction, the same result
 (but for the estimate's float64 sums, 10⁻¹¹ m apart as they run in another
 order): the loops do the twin's float32 and float64 arithmetic in the same
-order, and every transcendental (sin, cos, exp, log1p) is still taken by
+order, and every transcendental (sin, cos, exp) is still taken by
 numpy's vectorised ufuncs between the loops. numba's scalar libm calls
 differ from numpy's SIMD loops in the last bit for 4-40% of float32 inputs
 and cost 5-70 times more; a last-bit difference in a particle's position
@@ -22,7 +22,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from app.engine.particle.estimate import RADIUS_BIN_FLOOR_M, RADIUS_BINS, RADIUS_BINS_PER_EFOLD
+from app.engine.particle.estimate import (
+    RADIUS_BIN_FLOOR_M,
+    RADIUS_BINS,
+    RADIUS_BINS_PER_EFOLD,
+    RADIUS_EDGES,
+)
 from app.engine.particle.floor_model import FloorModel
 from app.engine.particle.inputs import FilterInput
 from app.engine.particle.motion import displacements
@@ -354,13 +359,11 @@ def cloud_estimate(
     """Return each row's mean x, y, direction and 68% radius, as ``estimate.cloud_estimate``.
 
     Two compiled passes (the moments and the particles' distances, then the
-    radius histogram) around numpy's sin, cos and log1p.
+    radius histogram) around numpy's sin and cos.
     """
     scale = np.float32(1.0 / RADIUS_BIN_FLOOR_M)
     mx, my, s, co, t = _moments(x, y, w, np.sin(alpha), np.cos(alpha), scale)
-    # bin = ⌊k ln(1 + d / d₀)⌋
-    np.log1p(t, out=t)
-    k = _quantile_bins(t, w, 0.68)
+    k = _quantile_bins(t, w, 0.68, _BIN_BELOW, _EDGES_ABOVE)
     heading = np.where(np.hypot(s, co) >= 0.5, np.mod(np.degrees(np.arctan2(s, co)), 360.0), np.nan)
     # upper edge: d₀ (e^((k + 1) / k_e) - 1)
     return mx, my, heading, RADIUS_BIN_FLOOR_M * np.expm1((k + 1) / RADIUS_BINS_PER_EFOLD)
@@ -399,19 +402,42 @@ def _moments(
     return mx, my, s, co, scaled
 
 
+def _radius_bin_table() -> tuple[np.ndarray, np.ndarray]:
+    """Return the radius bin of the least float32 with each top 16 bits, and the edges above.
+
+    The edges are ``RADIUS_EDGES`` followed by NaN. The 16 bits keep 7 of the
+    mantissa's: the floats sharing them span 0.8%, less than a bin's 3%, so at
+    most one edge lies among them and the bin of any of them is the table's or
+    the next, one comparison apart.
+    """
+    least = (np.arange(1 << 16, dtype=np.uint32) << 16).view(np.float32)
+    below = np.searchsorted(RADIUS_EDGES, least, side="right").astype(np.uint16)
+    # the last bin has no edge above it: NaN, which no distance reaches
+    return below, np.append(RADIUS_EDGES, np.float32(np.nan))
+
+
+_BIN_BELOW, _EDGES_ABOVE = _radius_bin_table()
+
+
 @njit(cache=True)
 def _quantile_bins(
-    t: np.ndarray, w: np.ndarray, q: float
+    t: np.ndarray, w: np.ndarray, q: float, below: np.ndarray, edges: np.ndarray
 ) -> np.ndarray:  # pragma: no cover - compiled
-    """Return each row's first radius bin whose cumulative weight reaches ``q`` of the total."""
+    """Return each row's first radius bin whose cumulative weight reaches ``q`` of the total.
+
+    A particle's bin, #{b : e_b ≤ t}, is looked up by ``t``'s top 16 bits
+    and moved up one when ``t`` reaches the next edge: ``estimate.weighted_radius``'s
+    search, without a branch or a logarithm.
+    """
     rows, n = t.shape
-    k_e = np.float32(RADIUS_BINS_PER_EFOLD)
+    bits = t.view(np.uint32)
     out = np.empty(rows, np.intp)
     hist = np.empty(RADIUS_BINS)
     for r in range(rows):
         hist[:] = 0.0
         for i in range(n):
-            hist[min(int(k_e * t[r, i]), RADIUS_BINS - 1)] += w[r, i]
+            g = below[bits[r, i] >> 16]
+            hist[g + (edges[g] <= t[r, i])] += w[r, i]
         total = 0.0
         for b in range(RADIUS_BINS):
             total += hist[b]
