@@ -138,6 +138,23 @@ def test_compiled_moves_agree_with_the_reference_wall_check(spread_m: float) -> 
         np.testing.assert_array_equal(a, b)
 
 
+def test_compiled_moves_agree_with_the_reference_about_the_longest_move() -> None:
+    rng = np.random.default_rng(11)
+    start = MODEL.plan.sample_free(2 * 400, rng).astype(np.float32).reshape(2, 400, 2)
+    x, y = start[..., 0], start[..., 1]
+    # lengths either side of max_move_m, where the kernel starts computing |Δ|
+    length = np.linspace(9.9, 10.1, 800).reshape(2, 400)
+    angle = rng.uniform(0.0, 2.0 * np.pi, (2, 400))
+    dx = (length * np.sin(angle)).astype(np.float32)
+    dy = (length * np.cos(angle)).astype(np.float32)
+    direction, turn = rng.random((2, 2, 400), dtype=np.float32)
+    long = np.array([True, True])
+    ref = settle_moves(MODEL, x, y, dx.copy(), dy.copy(), direction, turn, long, 10.0)
+    got = kernel.settle_moves(MODEL, x, y, dx.copy(), dy.copy(), direction, turn, long, 10.0)
+    for a, b in zip(ref, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_compiled_resampling_copies_what_the_reference_copies() -> None:
     rng = np.random.default_rng(7)
     w = rng.gamma(0.3, size=(6, 500))
