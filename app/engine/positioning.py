@@ -490,27 +490,23 @@ class PositioningEngine:
         for f in np.unique(floor).tolist():
             on = floor == f
             xy[on] = self.site.floors[f].plan.project(xy[on])
+        # converted for all devices at once, then handed out row by row
+        radius = np.array([e.radius for _, _, e in chosen])
+        accuracy = np.hypot(radius, p.accuracy_floor_m).tolist()
+        speed = np.hypot(v[:, 0], v[:, 1]).tolist()
+        times, points = t.tolist(), xy.tolist()
         out = []
         for i, (d, f, est) in enumerate(chosen):
             dev = devs[i]
-            dev.out_xy, dev.velocity = xy[i].copy(), v[i].copy()
-            dev.out_t, dev.out_floor = int(t[i]), f
-            out.append(
-                (
-                    d,
-                    Estimate(
-                        int(t[i]),
-                        float(xy[i, 0]),
-                        float(xy[i, 1]),
-                        float(self.site.floors[f].z0),
-                        f,
-                        est.heading,
-                        float(np.hypot(est.radius, p.accuracy_floor_m)),
-                        float(np.hypot(v[i, 0], v[i, 1])),
-                        self.method,
-                    ),
-                )
+            # rows of this round's arrays, which nothing writes to after
+            dev.out_xy, dev.velocity = xy[i], v[i]
+            dev.out_t, dev.out_floor = times[i], f
+            x, y = points[i]
+            height = float(self.site.floors[f].z0)
+            estimate = Estimate(
+                times[i], x, y, height, f, est.heading, accuracy[i], speed[i], self.method
             )
+            out.append((d, estimate))
         return out
 
 
