@@ -5,11 +5,14 @@ Stored state is data only: loading a snapshot cannot run code, whoever wrote
 the database or Redis entry. An array is its dtype, shape and raw bytes in a
 msgpack extension; object dtypes are refused both ways, never pickled.
 
-Version 1 (an npz of flat ``/``-joined keys, each compressed on its own) is
-still read, so devices stored before version 2 resume. Version 2 exists
-because a worker snapshots every device each ``snapshot_every_ms`` and at
-eviction: the npz cost 1.4-2.5 ms a snapshot, this about 0.2 ms, in 40% of
-the bytes (one fast zlib pass over the whole, not one per array).
+Versions 1 and 2 are still read, so devices stored before version 3 resume.
+Version 2 exists because a worker snapshots every device each
+``snapshot_every_ms`` and at eviction: version 1's npz (flat ``/``-joined
+keys, each compressed on its own) cost 1.4-2.5 ms a snapshot, version 2
+about 0.2 ms, in 40% of the bytes (one fast zlib pass over the whole).
+Version 3 compresses the same msgpack with an LZ4 frame instead of zlib: a
+particle filter's snapshot in 16 µs instead of 124 µs, 6.4 kB instead of
+5.3 kB, and read back in 5 µs instead of over 200.
 """
 
 from __future__ import annotations
@@ -19,10 +22,13 @@ import struct
 import zlib
 from typing import Any
 
+import lz4.frame
 import msgspec
 import numpy as np
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+_ZLIB_VERSION = 2
+"""Version 2: the same msgpack, zlib-compressed."""
 _ARRAY = 1
 """The msgpack extension code of an ndarray."""
 _HEAD = struct.Struct("<BB")
@@ -30,8 +36,6 @@ _HEAD = struct.Struct("<BB")
 _ZIP = b"PK\x03\x04"
 """How a version-1 snapshot (an npz, a zip file) begins."""
 _SEP = "/"
-_LEVEL = 1
-"""zlib's fastest level: at 6 a snapshot is 3-6% smaller and takes 1.5-2 times as long."""
 
 
 def _data(value: Any) -> Any:
@@ -73,16 +77,19 @@ _decoder = msgspec.msgpack.Decoder(dict[str, Any], ext_hook=_array)
 
 def encode(state: dict[str, Any]) -> bytes:
     """Serialise nested dicts (string keys) of scalars, strings and ndarrays."""
-    return bytes([FORMAT_VERSION]) + zlib.compress(_encoder.encode(_data(state)), _LEVEL)
+    return bytes([FORMAT_VERSION]) + lz4.frame.compress(_encoder.encode(_data(state)))
 
 
 def decode(blob: bytes) -> dict[str, Any]:
-    """Inverse of :func:`encode`, also of version 1; 0-d values come back as Python scalars."""
+    """Inverse of :func:`encode`, also of versions 1 and 2; 0-d values come back as Python
+    scalars."""
     if blob[:4] == _ZIP:
         return _decode_v1(blob)
-    if blob[:1] != bytes([FORMAT_VERSION]):
-        raise ValueError(f"unsupported snapshot version {blob[0] if blob else None}")
-    return _decoder.decode(zlib.decompress(memoryview(blob)[1:]))
+    if blob[:1] == bytes([FORMAT_VERSION]):
+        return _decoder.decode(lz4.frame.decompress(memoryview(blob)[1:]))
+    if blob[:1] == bytes([_ZLIB_VERSION]):
+        return _decoder.decode(zlib.decompress(memoryview(blob)[1:]))
+    raise ValueError(f"unsupported snapshot version {blob[0] if blob else None}")
 
 
 def _decode_v1(blob: bytes) -> dict[str, Any]:
