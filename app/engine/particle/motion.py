@@ -148,24 +148,40 @@ def displacements(
     """
     noise_t = noise.transpose(1, 0, 2)
     walking = np.array([i.step_length.size == 0 for i in inputs])
-    # a step's length error is at most √3 σ_L
+    # a step's length error is at most √3 σ_L; a random walk is long anyway
     error = np.sqrt(3.0) * p.step_length_std_m
-    longest = np.array([i.step_length.sum() + i.step_length.size * error for i in inputs])
+    longest = np.array(
+        [
+            (i.step_length.sum() + i.step_length.size * error) if i.step_length.size else 0.0
+            for i in inputs
+        ]
+    )
+    long = walking | (longest > p.max_move_m)
+    if walking.all() or not walking.any():
+        # one kind of motion (a site's tags, or its phones): views, no row copies
+        return (*_rows_displacement(inputs, bool(walking.all()), alpha, noise_t, p), long)
     dx = np.empty(alpha.shape, np.float32)
     dy = np.empty(alpha.shape, np.float32)
     direction = np.empty(alpha.shape, np.float32)
     for rows, walk in ((np.flatnonzero(~walking), False), (np.flatnonzero(walking), True)):
-        if rows.size == 0:
-            continue
         chosen = [inputs[r] for r in rows]
-        if walk:
-            dt = np.array([[i.walk_s] for i in chosen])
-            out = walk_displacement(dt, alpha[rows], noise_t[:, rows], p)
-        else:
-            length, heading = steps_table(chosen)
-            out = window_displacement(length, heading, alpha[rows], noise_t[:, rows], p)
+        out = _rows_displacement(chosen, walk, alpha[rows], noise_t[:, rows], p)
         dx[rows], dy[rows], direction[rows] = out
-    return dx, dy, direction, walking | (longest > p.max_move_m)
+    return dx, dy, direction, long
+
+
+def _rows_displacement(
+    inputs: list[FilterInput],
+    walk: bool,
+    alpha: np.ndarray,
+    noise: np.ndarray,
+    p: ParticleFilterParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for rows that all walk at random or all take steps: moves and directions."""
+    if walk:
+        return walk_displacement(np.array([[i.walk_s] for i in inputs]), alpha, noise, p)
+    length, heading = steps_table(inputs)
+    return window_displacement(length, heading, alpha, noise, p)
 
 
 def settle_moves(
