@@ -445,3 +445,16 @@ def test_filters_updated_together_end_where_each_alone_would() -> None:
         got = FloorFilter.update_many([together[i] for i in due], [windows[i] for i in due])
         assert [r.tolist() for r in got] == expected
         assert [together[i].belief.tolist() for i in due] == [alone[i].belief.tolist() for i in due]
+
+
+def test_a_reading_of_a_transmitter_on_no_floor_makes_no_floor_heard() -> None:
+    first, second = FloorFilter(np.array([0, 1]), PARAMS), FloorFilter(np.array([0, 1]), PARAMS)
+    nothing = np.zeros(0)
+    windows = [
+        FloorWindow(0, nothing.astype(np.intp), nothing, nothing, np.zeros(2)),
+        FloorWindow(0, np.array([-1]), np.array([-60.0]), np.array([-45.0]), np.zeros(2)),
+    ]
+    ranked = FloorFilter.update_many([first, second], windows)
+    # the second device's unplaced reading counts on no floor, not on the first device's
+    assert first.heard_t.tolist() == [NEVER, NEVER] and second.heard_t.tolist() == [NEVER, NEVER]
+    assert ranked[0].size == 0 and ranked[1].size == 0

@@ -183,7 +183,10 @@ class FloorFilter:
         sizes = [len(w.floor) for w in windows]
         device = np.repeat(np.arange(d), sizes)
         floor = np.concatenate([np.asarray(w.floor, np.intp) for w in windows] + [device[:0]])
-        heard = np.bincount(device * n + floor, minlength=d * n).reshape(d, n) > 0
+        # a reading of a transmitter on no floor (-1) makes no floor heard
+        placed = floor >= 0
+        counts = np.bincount(device[placed] * n + floor[placed], minlength=d * n)
+        heard = counts.reshape(d, n) > 0
         heard_t = np.where(heard, t[:, None], heard_t)
         active = heard_t > (t - p.history_ms)[:, None]
         # the chosen floor (the belief's argmax) first, then the active floors by belief
