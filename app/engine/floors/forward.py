@@ -174,9 +174,10 @@ class FloorFilter:
             barometer, climb = f.pressure.update(int(t[i]), w.pressure_hpa, p)
             # with a barometer, floors change only in the direction of a climb
             eps = p.flat_switch_prob if barometer else p.switch_prob
-            T = _flat_transition(levels, eps, p)
             if abs(climb) >= p.climb_min_m:
                 T = transition_matrix(f.levels, eps, climb, p.climb_switch_prob, p.climb_min_m)
+            else:
+                T = _flat_transition(levels, eps, p)
             power[i] = T if gap[i] == 1 else np.linalg.matrix_power(T, int(gap[i]))
         belief = forward_steps(belief, power, loglik)
         # the floors of the window's readings were heard now

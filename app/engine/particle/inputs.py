@@ -45,6 +45,11 @@ class FilterInput:
     walk_s: float = 0.0
     fix: tuple[float, float, float] | None = None
 
+    @property
+    def walks(self) -> bool:
+        """Whether the window has no steps, so that the particles walk at random."""
+        return self.step_length.size == 0
+
 
 def steps_table(inputs: list[FilterInput]) -> tuple[np.ndarray, np.ndarray]:
     """Return (R, K) step lengths (0 padded) and headings in rad (last heading repeated)."""

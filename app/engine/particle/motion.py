@@ -147,14 +147,11 @@ def displacements(
         many steps) and must be shortened to it.
     """
     noise_t = noise.transpose(1, 0, 2)
-    walking = np.array([i.step_length.size == 0 for i in inputs])
+    walking = np.array([i.walks for i in inputs])
     # a step's length error is at most √3 σ_L; a random walk is long anyway
     error = np.sqrt(3.0) * p.step_length_std_m
     longest = np.array(
-        [
-            (i.step_length.sum() + i.step_length.size * error) if i.step_length.size else 0.0
-            for i in inputs
-        ]
+        [0.0 if i.walks else i.step_length.sum() + i.step_length.size * error for i in inputs]
     )
     long = walking | (longest > p.max_move_m)
     if walking.all() or not walking.any():

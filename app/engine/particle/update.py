@@ -98,12 +98,12 @@ def _draw(
             i_s += 1
         if moving[r]:
             noise = draws.motion[i_m]
-            if inp.step_length.size:
-                rng.random(out=noise, dtype=np.float32)
-            else:
+            if inp.walks:
                 # a random walk's speed: see ``motion.walk_displacement``
                 rng.standard_exponential(out=noise[0], dtype=np.float32)
                 rng.random(out=noise[1], dtype=np.float32)
+            else:
+                rng.random(out=noise, dtype=np.float32)
             i_m += 1
         if mutate[r]:
             rng.random(out=draws.mutate[i_u])
@@ -141,7 +141,7 @@ def _update_chunk(
     starving = ~stale & (alive_count(w, p.dead_weight) < p.min_alive)
     weigh = (t - bank.last_weights[slots] >= p.update_interval_ms) & valid.any(axis=1)
     mutate = weigh & (valid.sum(axis=1) >= p.min_transmitters)
-    moving = np.array([i.step_length.size > 0 or i.walk_s > 0 for i in inputs])
+    moving = np.array([not i.walks or i.walk_s > 0 for i in inputs])
     draws = _draw(inputs, stale | starving, moving, mutate, p)
     scatter_rows = np.cumsum(stale | starving) - 1
 
