@@ -23,6 +23,7 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -118,7 +119,7 @@ def hmm_snapshot(site_dir: Path) -> dict[str, Any]:
         "zones": [],
         "zones_pending": {},
         "kinds": ["imu", "wifi"],
-        "buffer": "[]",
+        "buffer": b"\x90",  # an empty msgpack list
         "tracker": {"kind": HMM, "state": tracker.snapshot()},
     }
 
@@ -149,8 +150,8 @@ def main() -> None:
     print(f"{'device':>6} {'bytes':>7} {'enc p50':>8} {'enc p95':>8} {'dec p50':>8} {'dec p95':>8}")
     for name, state in states.items():
         blob = snapshots.encode(state)
-        enc = timed(lambda s=state: snapshots.encode(s), args.repeats)
-        dec = timed(lambda b=blob: snapshots.decode(b), args.repeats)
+        enc = timed(partial(snapshots.encode, state), args.repeats)
+        dec = timed(partial(snapshots.decode, blob), args.repeats)
         print(
             f"{name:>6} {len(blob):>7d} {np.median(enc):>8.1f} {np.percentile(enc, 95):>8.1f} "
             f"{np.median(dec):>8.1f} {np.percentile(dec, 95):>8.1f}"

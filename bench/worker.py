@@ -39,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 from app import demo  # noqa: E402
 from app.core.config import Settings  # noqa: E402
 from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database  # noqa: E402
+from app.core.heap import settle_heap  # noqa: E402
 from app.engine.positioning import PositioningEngine  # noqa: E402
 from app.engine.samples import Batch, Estimate  # noqa: E402
 from app.floors.service import put_floor  # noqa: E402
@@ -105,6 +106,8 @@ def measure(
     sessions = make_sessionmaker(make_engine(settings.resolved_database_url))
     clock = Clock()
     shard = Shard(shard=0, settings=settings, sessions=sessions, clock=clock)
+    # as a worker process does once it is ready: startup objects out of the collector's passes
+    settle_heap()
     fleet = Fleet(devices, f"w{devices}g{group}", T0)
     engine_seconds = 0.0
     process = PositioningEngine.process

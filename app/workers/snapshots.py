@@ -38,6 +38,11 @@ _ZIP = b"PK\x03\x04"
 _SEP = "/"
 
 
+_PLAIN = (str, bytes, int, float, bool)
+"""Values msgpack takes as they are (bytes kept whole: numpy's fixed-width bytes would drop
+trailing NULs)."""
+
+
 def _data(value: Any) -> Any:
     """Return ``value`` as msgpack takes it: dicts kept, 0-d values as scalars, arrays raw."""
     if isinstance(value, dict):
@@ -47,6 +52,8 @@ def _data(value: Any) -> Any:
                 raise TypeError(f"snapshot key {key!r} is not a string")
             out[key] = _data(item)
         return out
+    if isinstance(value, _PLAIN):
+        return value
     array = np.asarray(value)
     if array.dtype.hasobject:
         raise TypeError("snapshot value is not numeric or string data")

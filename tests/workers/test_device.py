@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import numpy as np
@@ -87,6 +88,23 @@ def test_a_restored_snapshot_resumes_the_device_exactly(engines: SiteEngines) ->
 
     assert any(m["type"] == "zone" and m["zone"] == "Lab" for m in first)
     assert first + rest == uninterrupted
+
+
+def test_a_snapshot_with_the_buffer_as_json_text_resumes_the_same_samples(
+    engines: SiteEngines,
+) -> None:
+    # earlier releases stored the reorder buffer as JSON text
+    before = DeviceSession(device_id="tag", engines=engines, now=NOW)
+    _feed(before, per_second(uwb_ranges(6)), flush_at_end=False)
+    state = snapshots.decode(snapshots.encode(before.snapshot()))
+    assert before.buffer and isinstance(state["buffer"], bytes)
+    state["buffer"] = json.dumps([list(item) for item in before.buffer])
+
+    after = DeviceSession(device_id="tag", engines=engines, now=NOW)
+    after.restore(state)
+
+    assert after.buffer == before.buffer
+    assert after.seen == before.seen
 
 
 def test_wifi_heard_before_inertial_samples_already_used_is_not_late(

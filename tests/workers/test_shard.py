@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 from sqlalchemy import select
@@ -240,7 +241,7 @@ def test_drain_positions_what_is_buffered_snapshots_every_device_and_lets_them_g
             assert stored is not None
             state = snapshots.decode(stored)
             assert state["processed_t"] == last
-            assert state["buffer"] == "[]" and not state["unflushed"]
+            assert msgspec.msgpack.decode(state["buffer"]) == [] and not state["unflushed"]
 
 
 def test_the_next_shard_resumes_a_drained_device_from_its_snapshot(

@@ -86,6 +86,8 @@ def test_every_kind_of_value_round_trips() -> None:
         "nan": float("nan"),
         "bool": False,
         "text": "Lab ⟂ 2",
+        # kept whole: numpy's fixed-width bytes would drop the trailing NUL
+        "bytes": b"\x93\x00",
         "numpy_scalars": {"i": np.int32(7), "f": np.float32(0.5), "b": np.bool_(True)},
         "list": [1.5, 2.5],
         "empty": {},
