@@ -33,6 +33,21 @@ class Zone:
     name: str
     floor: int
     polygon: BaseGeometry
+    bounds: tuple[float, float, float, float] = field(init=False)
+    """The polygon's (min x, min y, max x, max y)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "bounds", tuple(self.polygon.bounds))
+
+    def contains(self, x: float, y: float) -> bool:
+        """Return whether (x, y) lies inside the zone (not on its edge).
+
+        The bounding box is compared first: most positions lie outside most
+        zones, and the comparison costs a tenth of a µs where shapely's call
+        costs 4 to 7 µs.
+        """
+        x0, y0, x1, y1 = self.bounds
+        return x0 <= x <= x1 and y0 <= y <= y1 and bool(shapely.contains_xy(self.polygon, x, y))
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,7 +8,6 @@ import zlib
 from typing import Any
 
 import msgspec
-import shapely
 
 from app.core.identity import DeviceKey
 from app.engine.samples import Batch, Estimate
@@ -283,7 +282,7 @@ class DeviceSession:
         inside = frozenset(
             z.name
             for z in self.site.zones
-            if z.floor == estimate.floor and shapely.contains_xy(z.polygon, estimate.x, estimate.y)
+            if z.floor == estimate.floor and z.contains(estimate.x, estimate.y)
         )
         return [
             {

@@ -4,7 +4,9 @@ the dwell time, and every confirmed crossing is reported at the time it happened
 from __future__ import annotations
 
 import numpy as np
+import shapely
 
+from app.sites.assembly import Zone
 from app.workers.zones import ZoneTracker
 
 DWELL_MS = 2000
@@ -62,3 +64,16 @@ def test_pending_crossings_survive_a_snapshot() -> None:
     old = ZoneTracker(DWELL_MS)
     old.restore({"zones": ["Lab"]})
     assert old.inside == {"Lab"} and old.pending == {}
+
+
+def test_a_zone_contains_what_shapely_says_inside_and_outside_its_bounding_box() -> None:
+    # an L: its bounding box holds the missing corner, which the zone does not
+    ell = shapely.Polygon([(0, 0), (10, 0), (10, 4), (4, 4), (4, 10), (0, 10)])
+    zone = Zone("L", 0, ell)
+    rng = np.random.default_rng(3)
+    points = np.vstack([rng.uniform(-2.0, 12.0, (400, 2)), [(0.0, 5.0), (7.0, 7.0), (2.0, 2.0)]])
+
+    got = [zone.contains(float(x), float(y)) for x, y in points]
+
+    assert got == shapely.contains_xy(ell, points[:, 0], points[:, 1]).tolist()
+    assert got[-3:] == [False, False, True]  # on the edge, in the box's empty corner, inside
