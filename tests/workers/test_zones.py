@@ -1,5 +1,6 @@
 """Zone dwell: a device jittering across a zone's edge gets no enter/exit pair shorter than
-the dwell time, and every confirmed crossing is reported at the time it happened."""
+the dwell time, and every confirmed crossing is reported at the time it happened; a zone
+holds the points shapely says it holds."""
 
 from __future__ import annotations
 
