@@ -247,7 +247,8 @@ def pull_towards_fixes(
     """
     fxy = model.plan.project(fix[:, :2])
     # k = r_pf / (r_pf + r_fix); a filter without a radius yet jumps to the fix
-    k = np.where(np.isfinite(r_pf), r_pf / (r_pf + fix[:, 2]), 1.0)[:, None]
+    k = np.divide(r_pf, r_pf + fix[:, 2], out=np.ones(r_pf.shape), where=np.isfinite(r_pf))
+    k = k[:, None]
     px = x + k * (fxy[:, :1] - x)
     py = y + k * (fxy[:, 1:] - y)
     ok = model.plan.is_free(np.stack([px, py], axis=-1))
