@@ -3,7 +3,7 @@
 # The suite runs on the embedded SQLite; when a PostgreSQL server answers on
 # localhost (or LOCUS_TEST_POSTGRES_URL names one), the API and pipeline tests
 # run a second time against it. Both passes spread the test files over two
-# processes (pytest-xdist): most tests wait on a server, so two halve the time.
+# processes (pytest-xdist), which nearly halves the time on two cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
