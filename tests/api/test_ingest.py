@@ -39,11 +39,15 @@ def _bad_bodies(site: str) -> dict[str, tuple[str | bytes, int]]:
         "site_id": site,
         "wifi": [{"t": T0 + i, "id": AP[0], "rssi": -50} for i in range(10_001)],
     }
+    loud = batch(site, "bad-dev")
+    loud["wifi"][0]["rssi"] = "loud"
+    fractional = batch(site, "bad-dev")
+    fractional["wifi"][0]["t"] = T0 + 0.5
     return {
-        "rssi as string": (json.dumps(good).replace("-50", '"loud"', 1), 422),
+        "rssi as string": (json.dumps(loud), 422),
         "missing device_id": (json.dumps({k: v for k, v in good.items() if k != "device_id"}), 422),
         "every sample impossible": (json.dumps(good).replace('"rssi": -', '"rssi": '), 422),
-        "float time": (json.dumps(good).replace(str(T0), f"{T0}.5", 1), 422),
+        "float time": (json.dumps(fractional), 422),
         "time before 2000": (json.dumps(batch(site, "bad-dev", t0=1000)), 422),
         "far future time": (json.dumps(batch(site, "bad-dev", t0=far_future)), 422),
         "no samples": (json.dumps({"device_id": "bad-dev", "site_id": site}), 422),
