@@ -39,6 +39,7 @@ from typing import Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from app.core.heap import settle_heap  # noqa: E402
 from app.engine.particle.bank import ParticleBank  # noqa: E402
 from app.engine.particle.floor_model import build_floor_models  # noqa: E402
 from app.engine.particle.inputs import FilterInput  # noqa: E402
@@ -221,6 +222,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.quick:
         args.warmup, args.repeats = 3, 5
     site = office_site(np.random.default_rng(0))
+    # as a worker process does once its sites are built: startup objects out of the
+    # collector's passes, young collections every 50,000 new objects
+    settle_heap()
     if args.profile:
         profile(site, args.kernel, args.particles)
         return
