@@ -64,6 +64,7 @@ class Shard:
         self.sites = sites or SiteCache(settings=settings, sessions=sessions)
         self.on_storage_wait = on_storage_wait
         self.devices: dict[DeviceKey, DeviceSession] = {}
+        """The devices held here, least recently heard first (``_heard``)."""
         self.counters: Counter[str] = Counter()
         self.update_seconds = 0.0
         self._scanned_at = 0
@@ -104,6 +105,11 @@ class Shard:
             self.counters["restored"] += 1
         self.devices[device.key] = device
         return device
+
+    def _heard(self, device: DeviceSession) -> None:
+        """Move a device that has just been heard to the end of ``devices``: kept in the
+        order of ``last_seen``, the silence scan stops at the first recent device."""
+        self.devices[device.key] = self.devices.pop(device.key)
 
     def _evict(self, device: DeviceSession) -> None:
         device.close()
@@ -160,6 +166,7 @@ class Shard:
                 counts.append((0, 0, 0))
                 continue
             accepted, late, duplicate = device.add(msg.samples, now=now)
+            self._heard(device)
             device.consumed += 1
             self.counters["samples"] += accepted
             self.counters["late"] += late
@@ -336,12 +343,19 @@ class Shard:
         flush_ms = self.settings.flush_after_s * 1000
         evict_ms = self.settings.idle_evict_s * 1000
         periods = self.settings.flush_after_periods
-        quiet = [
-            d
-            for d in self.devices.values()
-            if d.pending and now - d.last_seen >= d.quiet_after_ms(flush_ms, periods)
-        ]
-        idle = [d for d in self.devices.values() if not d.pending and now - d.last_seen >= evict_ms]
+        # no device is quiet or idle before the shorter of the two silences
+        horizon = min(flush_ms, evict_ms)
+        quiet: list[DeviceSession] = []
+        idle: list[DeviceSession] = []
+        for d in self.devices.values():
+            silent = now - d.last_seen
+            if silent < horizon:
+                break  # and so is every device after it
+            if d.pending:
+                if silent >= d.quiet_after_ms(flush_ms, periods):
+                    quiet.append(d)
+            elif silent >= evict_ms:
+                idle.append(d)
         if not quiet and not idle:
             return []
         results, rows = self._flush(quiet, now)

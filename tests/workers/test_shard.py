@@ -197,6 +197,27 @@ def test_devices_gone_quiet_together_are_flushed_in_one_call_of_their_shared_eng
         assert _positions(results, device_id) == flushed
 
 
+def test_a_silent_device_is_flushed_while_one_heard_before_it_keeps_uploading(
+    shard: Shard, office: LoadedSite, clock: Clock
+) -> None:
+    early, late = _id("early"), _id("late")
+    mine = per_second(ble_scans(6))
+    theirs = per_second(ble_scans(6, OTHER_ROUTE, seed=2))
+    for k in range(6):
+        # ``early`` uploads every second; ``late`` joins a second later, leaves at 3 s
+        messages = [_message(office, early, "ble", mine[k])]
+        if 1 <= k <= 3:
+            messages.append(_message(office, late, "ble", theirs[k]))
+        shard.handle(messages)
+        clock.advance(1.0)
+
+    results = shard.tick()  # late silent for 3 s, early for 1 s
+
+    assert _positions(results, late) and not _positions(results, early)
+    assert not shard.devices[(SITE_ID, late)].pending
+    assert shard.devices[(SITE_ID, early)].pending
+
+
 def test_a_device_uploading_slower_than_the_flush_time_is_flushed_after_its_own_periods(
     shard: Shard, office: LoadedSite, clock: Clock
 ) -> None:
