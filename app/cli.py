@@ -47,12 +47,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.core.db import make_engine, make_sessionmaker, upgrade_database
+    from app.core.heap import limit_arenas
     from app.core.logging import configure_logging, quiet_connections
     from app.keys.bootstrap import announce_admin_key, bootstrap_admin
     from app.main import create_app
 
     configure_logging()
     settings = _settings(args)
+    # before any thread of the server allocates
+    limit_arenas(settings.api_malloc_arenas)
     _port_free(settings)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
@@ -85,6 +88,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from app import demo
     from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
+    from app.core.heap import limit_arenas
     from app.core.logging import configure_logging, quiet_connections
     from app.keys.bootstrap import bootstrap_admin
     from app.keys.service import create_key
@@ -92,6 +96,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     configure_logging()
     settings = _settings(args)
+    limit_arenas(settings.api_malloc_arenas)
     if args.home is None:
         settings = settings.model_copy(update={"home": settings.home / "demo"})
     _port_free(settings)

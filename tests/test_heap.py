@@ -10,7 +10,7 @@ import weakref
 
 import pytest
 
-from app.core.heap import PeriodicTrim, map_large_allocations, settle_heap
+from app.core.heap import PeriodicTrim, limit_arenas, map_large_allocations, settle_heap
 
 
 class _Node:
@@ -154,3 +154,58 @@ def test_a_periodic_trim_trims_once_per_period_and_never_at_zero() -> None:
     never = PeriodicTrim(0.0, clock=lambda: now[0])
     now[0] = 1e9
     assert never() is False
+
+
+_ARENAS_OF_CONCURRENT_THREADS = """
+import ctypes, sys, tempfile, threading
+from app.core.heap import limit_arenas
+
+limit = int(sys.argv[1])
+assert limit_arenas(limit) == (limit > 0)
+libc = ctypes.CDLL("libc.so.6")
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+
+started = threading.Barrier(6)
+done = threading.Barrier(6)
+
+def allocate():
+    started.wait()  # all six threads alive and allocating at once
+    blocks = [libc.malloc(4096) for _ in range(100)]
+    done.wait()
+    for p in blocks:
+        libc.free(p)
+
+threads = [threading.Thread(target=allocate) for _ in range(6)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+with tempfile.NamedTemporaryFile(suffix=".xml") as report:
+    stream = libc.fopen(report.name.encode(), b"w")
+    libc.malloc_info(0, stream)
+    libc.fclose(stream)
+    print(open(report.name).read().count("<heap nr="))
+"""
+
+
+@pytest.mark.skipif(
+    ctypes.util.find_library("c") is None or sys.platform != "linux", reason="glibc's allocator"
+)
+def test_limited_arenas_are_shared_by_concurrent_threads() -> None:
+    def arenas(limit: int) -> int:
+        out = subprocess.run(
+            [sys.executable, "-c", _ARENAS_OF_CONCURRENT_THREADS, str(limit)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return int(out.stdout)
+
+    assert arenas(2) == 2
+    assert arenas(0) > 2, "glibc's default gives concurrent threads arenas of their own"
+    assert not limit_arenas(0)

@@ -281,6 +281,14 @@ class Settings(BaseSettings):
         "once a minute, a worker's resident memory saws up and down by 5 MB between trims, "
         "while one trim costs about 0.4 ms.",
     )
+    api_malloc_arenas: int = Field(
+        default=2,
+        ge=0,
+        le=1024,
+        description="The most C allocator arenas the API process keeps (glibc ``mallopt``, "
+        "as ``MALLOC_ARENA_MAX``); 0 leaves glibc's eight a core. Each thread of the API's "
+        "pool would otherwise hold an arena of its own whose freed pages no other reuses.",
+    )
     worker_mmap_threshold_bytes: int = Field(
         default=128 * 1024,
         ge=0,

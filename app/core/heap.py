@@ -52,6 +52,26 @@ M_MMAP_THRESHOLD = -3
 """``mallopt``'s parameter for the size from which glibc maps a request on its own."""
 
 
+M_ARENA_MAX = -8
+"""``mallopt``'s parameter for the most arenas (heaps for concurrent threads) glibc keeps."""
+
+
+def limit_arenas(count: int) -> bool:
+    """Let the C allocator keep at most ``count`` arenas in this process; False where the C
+    library cannot, or for 0 (its default: eight a core).
+
+    Call it before a second thread allocates: glibc fixes the limit when a thread first
+    needs an arena of its own. The API runs one event loop, but reads the database and
+    checks keys in a pool of threads, each of which glibc gives an arena of its own, and
+    pages freed in one arena serve no other. In a 30-minute soak at 1,660 devices (one
+    run each) the API's resident memory grew by 4.9 MB/hour over the second half with
+    glibc's default and by 2.0 MB/hour with two arenas.
+    """
+    if _MALLOPT is None or count <= 0:
+        return False
+    return bool(_MALLOPT(M_ARENA_MAX, count))
+
+
 def map_large_allocations(threshold: int) -> bool:
     """Serve every C allocation of ``threshold`` bytes or more from a mapping of its own,
     returned to the system when freed; False where the C library cannot.
