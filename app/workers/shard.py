@@ -108,7 +108,8 @@ class Shard:
 
     def _heard(self, device: DeviceSession) -> None:
         """Move a device that has just been heard to the end of ``devices``: kept in the
-        order of ``last_seen``, the silence scan stops at the first recent device."""
+        order of ``last_seen``, the silence scan stops at the first recent device (after
+        the wall clock steps back, a flush waits for at most the step)."""
         self.devices[device.key] = self.devices.pop(device.key)
 
     def _evict(self, device: DeviceSession) -> None:
