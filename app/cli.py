@@ -26,6 +26,18 @@ def _settings(args: argparse.Namespace) -> Settings:
         raise SystemExit(f"locus: invalid settings: {exc}") from None
 
 
+def _api_settings(args: argparse.Namespace) -> Settings:
+    """Start the logs and return the settings of a process that serves the API, its C
+    allocator limited to the arenas it may keep before any thread allocates."""
+    from app.core.heap import limit_arenas
+    from app.core.logging import configure_logging
+
+    configure_logging()
+    settings = _settings(args)
+    limit_arenas(settings.api_malloc_arenas)
+    return settings
+
+
 def _port_free(settings: Settings) -> None:
     """Exit naming the port when something already listens on it (a demo left running)."""
     import socket
@@ -47,15 +59,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.core.db import make_engine, make_sessionmaker, upgrade_database
-    from app.core.heap import limit_arenas
-    from app.core.logging import configure_logging, quiet_connections
+    from app.core.logging import quiet_connections
     from app.keys.bootstrap import announce_admin_key, bootstrap_admin
     from app.main import create_app
 
-    configure_logging()
-    settings = _settings(args)
-    # before any thread of the server allocates
-    limit_arenas(settings.api_malloc_arenas)
+    settings = _api_settings(args)
     _port_free(settings)
     upgrade_database(settings.resolved_database_url)
     engine = make_engine(settings.resolved_database_url)
@@ -88,15 +96,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from app import demo
     from app.core.db import make_engine, make_sessionmaker, session_scope, upgrade_database
-    from app.core.heap import limit_arenas
-    from app.core.logging import configure_logging, quiet_connections
+    from app.core.logging import quiet_connections
     from app.keys.bootstrap import bootstrap_admin
     from app.keys.service import create_key
     from app.main import create_app
 
-    configure_logging()
-    settings = _settings(args)
-    limit_arenas(settings.api_malloc_arenas)
+    settings = _api_settings(args)
     if args.home is None:
         settings = settings.model_copy(update={"home": settings.home / "demo"})
     _port_free(settings)
