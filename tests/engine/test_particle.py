@@ -11,7 +11,7 @@ from scipy import stats
 from app.engine.particle.bank import ParticleBank
 from app.engine.particle.estimate import FilterEstimate, weighted_radius
 from app.engine.particle.floor_model import FloorModel, build_floor_models, overlay_radio_map
-from app.engine.particle.inputs import FilterInput
+from app.engine.particle.inputs import FilterInput, steps_table
 from app.engine.particle.motion import walk_displacement, window_displacement
 from app.engine.particle.mutation import centre_sampling, mutation, sampling_centre
 from app.engine.particle.params import ParticleFilterParams
@@ -194,6 +194,28 @@ def test_moves_of_mixed_lengths_follow_the_half_cell_rule_each() -> None:
         g = k == kk
         ref[g] = plan.segment_free(start[g].astype(float), end[g].astype(float))
     np.testing.assert_array_equal(got, ref)
+
+
+def test_steps_table_pads_lengths_with_zero_and_repeats_the_last_heading() -> None:
+    def window(lengths: list[float], headings: list[float]) -> FilterInput:
+        return FilterInput(
+            slot=0,
+            t=0,
+            tx=np.zeros(0, np.intp),
+            rssi=np.zeros(0),
+            count=np.zeros(0),
+            rng=np.random.default_rng(0),
+            step_length=np.array(lengths),
+            step_heading=np.array(headings),
+        )
+
+    length, heading = steps_table(
+        [window([0.7, 0.6, 0.5], [0.0, 90.0, 180.0]), window([0.8], [270.0]), window([], [])]
+    )
+    np.testing.assert_array_equal(length, [[0.7, 0.6, 0.5], [0.8, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(heading[:2], [[0.0, np.pi / 2, np.pi], [1.5 * np.pi] * 3])
+    # a window without steps has no heading
+    assert np.isnan(heading[2]).all()
 
 
 def test_window_displacement_without_noise_sums_the_steps() -> None:

@@ -12,7 +12,7 @@ from app.engine.particle.bank import ParticleBank
 from app.engine.particle.estimate import RADIUS_EDGES, FilterEstimate, cloud_estimate
 from app.engine.particle.floor_model import build_floor_models
 from app.engine.particle.inputs import FilterInput
-from app.engine.particle.motion import settle_moves
+from app.engine.particle.motion import settle_moves, window_displacement
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.update import update_filters
 from app.engine.pathloss import expected_rssi, ranges_3d
@@ -151,6 +151,19 @@ def test_compiled_moves_agree_with_the_reference_about_the_longest_move() -> Non
     long = np.array([True, True])
     ref = settle_moves(MODEL, x, y, dx.copy(), dy.copy(), direction, turn, long, 10.0)
     got = kernel.settle_moves(MODEL, x, y, dx.copy(), dy.copy(), direction, turn, long, 10.0)
+    for a, b in zip(ref, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_compiled_window_moves_equal_the_reference_displacement() -> None:
+    rng = np.random.default_rng(12)
+    # windows of one to three steps, padded as steps_table pads them
+    length = rng.uniform(0.5, 0.8, (6, 3)) * (np.arange(3) < rng.integers(1, 4, (6, 1)))
+    heading = rng.uniform(0.0, 2.0 * np.pi, (6, 3))
+    noise = rng.random((6, 2, 700), dtype=np.float32)
+    alpha = rng.random((6, 700), dtype=np.float32)
+    ref = window_displacement(length, heading, alpha, noise.transpose(1, 0, 2), P)
+    got = kernel.window_moves(length, heading, noise, P)
     for a, b in zip(ref, got, strict=True):
         np.testing.assert_array_equal(a, b)
 

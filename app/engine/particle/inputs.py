@@ -53,15 +53,17 @@ class FilterInput:
 
 def steps_table(inputs: list[FilterInput]) -> tuple[np.ndarray, np.ndarray]:
     """Return (R, K) step lengths (0 padded) and headings in rad (last heading repeated)."""
-    width = max(1, max(i.step_length.size for i in inputs))
-    length = np.zeros((len(inputs), width))
-    heading = np.zeros((len(inputs), width))
-    for r, inp in enumerate(inputs):
-        k = inp.step_length.size
-        length[r, :k] = inp.step_length
-        heading[r, :k] = np.radians(inp.step_heading)
-        heading[r, k:] = heading[r, k - 1] if k else np.nan
-    return length, heading
+    sizes = np.array([i.step_length.size for i in inputs])
+    width = max(1, int(sizes.max(initial=0)))
+    # each row's k steps, then its last step's heading again up to the width (NaN without one)
+    column = np.minimum(np.arange(width), np.maximum(sizes, 1)[:, None] - 1)
+    starts = np.cumsum(sizes) - sizes
+    heading = np.radians(np.concatenate([i.step_heading for i in inputs] + [[np.nan]]))
+    # rows without steps read the NaN appended after every real heading
+    flat = np.where(sizes[:, None] > 0, starts[:, None] + column, heading.size - 1)
+    length = np.concatenate([i.step_length for i in inputs] + [[0.0]])[flat]
+    length[np.arange(width) >= sizes[:, None]] = 0.0
+    return length, heading[flat]
 
 
 def readings_table(

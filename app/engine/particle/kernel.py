@@ -29,8 +29,8 @@ from app.engine.particle.estimate import (
     RADIUS_EDGES,
 )
 from app.engine.particle.floor_model import FloorModel
-from app.engine.particle.inputs import FilterInput
-from app.engine.particle.motion import displacements
+from app.engine.particle.inputs import FilterInput, steps_table
+from app.engine.particle.motion import displacements, error_scales, heading_sums, long_rows
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.walls import WallRaster
 from app.engine.particle.weights import reading_weights
@@ -52,9 +52,76 @@ def move_particles(
     noise: np.ndarray,
     p: ParticleFilterParams,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Step 2 for moving filters, as ``motion.move_particles``, the moves checked compiled."""
-    dx, dy, direction, long = displacements(alpha, inputs, noise, p)
+    """Step 2 for moving filters, as ``motion.move_particles``, the moves checked compiled.
+
+    Windows of steps with headings (a phone's, mostly) are moved by
+    ``window_moves``; other rows by the reference's ``motion.displacements``.
+    """
+    dx = None
+    if not any(i.walks for i in inputs):
+        length, heading = steps_table(inputs)
+        if not np.isnan(heading).any():
+            dx, dy, direction = window_moves(length, heading, noise, p)
+            long = long_rows(inputs, p)
+    if dx is None:
+        dx, dy, direction, long = displacements(alpha, inputs, noise, p)
     return settle_moves(model, x, y, dx, dy, direction, noise[:, 1], long, p.max_move_m)
+
+
+def window_moves(
+    length: np.ndarray, heading: np.ndarray, noise: np.ndarray, p: ParticleFilterParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for rows whose steps all have headings, as ``motion.window_displacement``.
+
+    One compiled pass for the errors, numpy's sin and cos, one pass for the moves.
+    """
+    vx, vy, ux, uy, last = heading_sums(length, heading)
+    length_scale, heading_scale = error_scales(p)
+    turn = _heading_errors(noise, heading_scale)
+    return _window_moves(
+        noise, turn, np.sin(turn), np.cos(turn), vx, vy, ux, uy, last, length_scale
+    )
+
+
+@njit(cache=True)
+def _heading_errors(noise: np.ndarray, scale: np.float32) -> np.ndarray:  # pragma: no cover
+    """Return ε_θ = (2u - 1) √3 σ_θ of every particle from its uniform ``noise[r, 1]``."""
+    rows, _, n = noise.shape
+    out = np.empty((rows, n), np.float32)
+    for r in range(rows):
+        for i in range(n):
+            out[r, i] = (_TWO * noise[r, 1, i] - _ONE) * scale
+    return out
+
+
+@njit(cache=True)
+def _window_moves(
+    noise: np.ndarray,
+    turn: np.ndarray,
+    sin_t: np.ndarray,
+    cos_t: np.ndarray,
+    vx: np.ndarray,
+    vy: np.ndarray,
+    ux: np.ndarray,
+    uy: np.ndarray,
+    last: np.ndarray,
+    length_scale: np.float32,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Return Δ = (V + ε_L U) rotated clockwise by ε_θ, and α = θ_last + ε_θ, per particle."""
+    rows, n = turn.shape
+    dx = np.empty((rows, n), np.float32)
+    dy = np.empty((rows, n), np.float32)
+    direction = np.empty((rows, n), np.float32)
+    for r in range(rows):
+        for i in range(n):
+            error = (_TWO * noise[r, 0, i] - _ONE) * length_scale
+            a = vx[r, 0] + error * ux[r, 0]
+            b = vy[r, 0] + error * uy[r, 0]
+            c, s = cos_t[r, i], sin_t[r, i]
+            dx[r, i] = a * c + b * s
+            dy[r, i] = b * c - a * s
+            direction[r, i] = last[r, 0] + turn[r, i]
+    return dx, dy, direction
 
 
 def settle_moves(
@@ -120,20 +187,22 @@ def _settle(
     """Make each particle's move in place where the plan allows it, as ``motion.settle_moves``.
 
     ``walls.moves_free``'s rule in two passes: the ends of every move, which
-    settle most of them, then the half-cell points of the moves neither end
-    vouches for, point by point across moves. Neither pass branches on the
-    data: a branch on whether a move needs tracing, or on a move's point
-    count, would be mispredicted about every other particle.
+    settle most of them, then the sphere trace of the moves neither end
+    vouches for, in rounds of one point of each move still traced. Neither
+    pass branches on the data: a branch on whether a move needs tracing, or
+    on whether a point ends it, would be mispredicted about every other time.
     """
     rows, n = x.shape
     # (0.999 L)²: float32's |Δ|² errs by far less than that 0.2%
     near_max = np.float32(0.999) * max_move * (np.float32(0.999) * max_move)
-    # the moves to trace: first point (cells), step, point count, flat index
+    # the moves to trace: start and step (cells), points per cell, next and last point
     su = np.empty(rows * n, np.float32)
     sv = np.empty(rows * n, np.float32)
     tu = np.empty(rows * n, np.float32)
     tv = np.empty(rows * n, np.float32)
-    count = np.empty(rows * n, np.int64)
+    per_cell = np.empty(rows * n, np.float32)
+    at = np.empty(rows * n, np.float32)
+    last = np.empty(rows * n, np.float32)
     which = np.empty(rows * n, np.int64)
     traced = 0
     for r in range(rows):
@@ -166,61 +235,50 @@ def _settle(
             x[r, i] = x1 if made else x0
             y[r, i] = y1 if made else y0
             alpha[r, i] = direction[r, i] if made else (_TWO * turn[r, i] - _ONE) * _PI
-            # k = ⌈|move| / ½⌉ points after the start; those an end vouches for are skipped
+            # walls.trace_span: k = ⌈|move| / ½⌉ points after the start, those an end
+            # vouches for skipped
             k = max(np.ceil(_TWO * length), _ONE)
             inv_h = k / max(length, _TINY)
-            first = max(np.ceil(reach0 * inv_h), _ONE)
-            last = np.floor(min(k - reach1 * inv_h, k - _HALF))
             # written for every move, kept (traced advanced) for those to trace
-            count[traced] = int(max(last - first + _ONE, np.float32(0.0)))
+            at[traced] = max(np.ceil(reach0 * inv_h), _ONE)
+            last[traced] = np.floor(min(k - reach1 * inv_h, k - _HALF))
             tu[traced], tv[traced] = du / k, dv / k
-            # p = p₀ + j Δp / k from the first point to look up, then one step at a time
-            su[traced], sv[traced] = u0 + first * tu[traced], v0 + first * tv[traced]
+            su[traced], sv[traced] = u0, v0
+            per_cell[traced] = inv_h
             which[traced] = r * n + i
             dx[r, i], dy[r, i] = sx, sy
             traced += trace
-    if traced == 0:
-        return
-    # most points first (a counting sort), so that the moves still traced at point j
-    # are a leading run: a random walk's few long moves do not hold up the rest
-    order = _by_count_descending(count[:traced])
-    su, sv, tu, tv = su[order], sv[order], tu[order], tv[order]
-    good = np.ones(traced, np.uint8)
-    top = free.size - 1
-    active = traced
-    for j in range(count[order[0]]):
-        while count[order[active - 1]] <= j:
-            active -= 1
-        for m in range(active):
-            good[m] &= free[min(max(int(sv[m]) * stride + int(su[m]), 0), top)]
-            su[m] += tu[m]
-            sv[m] += tv[m]
+    # walls._trace_moves: point j = p₀ + j Δp / k, looked up, vouches for ⌈(c - √2) k / |Δ|⌉
+    good = np.ones(traced, np.bool_)
+    active = np.empty(traced, np.int64)
+    count = 0
+    for m in range(traced):
+        active[count] = m
+        count += at[m] <= last[m]
+    top = clearance.size - 1
+    while count:
+        kept = 0
+        for q in range(count):
+            m = active[q]
+            j = at[m]
+            c = clearance[
+                min(max(int(sv[m] + j * tv[m]) * stride + int(su[m] + j * tu[m]), 0), top)
+            ]
+            ok = c > np.float32(0.0)
+            good[m] = ok
+            j = j + max(np.ceil((c - _ROOT2) * per_cell[m]), _ONE)
+            at[m] = j
+            active[kept] = m
+            kept += ok & (j <= last[m])
+        count = kept
     x, y, alpha = x.reshape(-1), y.reshape(-1), alpha.reshape(-1)
     dx, dy, direction = dx.reshape(-1), dy.reshape(-1), direction.reshape(-1)
     for m in range(traced):
-        f = which[order[m]]
+        f = which[m]
         if good[m]:
             x[f] += dx[f]
             y[f] += dy[f]
             alpha[f] = direction[f]
-
-
-@njit(cache=True)
-def _by_count_descending(count: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """Return the indices of ``count`` (non-negative integers) ordered by count, largest first."""
-    most = count.max()
-    # start[c] = how many counts exceed c
-    start = np.zeros(most + 1, np.int64)
-    for c in count:
-        start[c] += 1
-    total = 0
-    for c in range(most, -1, -1):
-        start[c], total = total, total + start[c]
-    order = np.empty(count.size, np.int64)
-    for m in range(count.size):
-        order[start[count[m]]] = m
-        start[count[m]] += 1
-    return order
 
 
 def log_likelihood(

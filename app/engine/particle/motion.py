@@ -18,6 +18,35 @@ from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.walls import moves_free
 
 
+def error_scales(params: ParticleFilterParams) -> tuple[np.float32, np.float32]:
+    """Return √3 σ_L (m) and √3 σ_θ (rad) in float32, the scales of the motion errors.
+
+    A uniform on [-√3 σ, √3 σ) has standard deviation σ, so (2u - 1) √3 σ
+    draws a step's length or heading error.
+    """
+    root3 = np.float32(np.sqrt(3.0))
+    return (
+        root3 * np.float32(params.step_length_std_m),
+        root3 * np.float32(np.radians(params.heading_std_deg)),
+    )
+
+
+def heading_sums(
+    length: np.ndarray, heading: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return a window's V = Σ L_j u_j and U = Σ u_j, u_j = (sin θ_j, cos θ_j), and θ_last.
+
+    For rows whose every step has a heading; each a float32 column, shape (R, 1).
+    """
+    real = length > 0
+    sin_h, cos_h = np.sin(heading) * real, np.cos(heading) * real
+    vx = np.sum(length * sin_h, axis=1, keepdims=True).astype(np.float32)
+    vy = np.sum(length * cos_h, axis=1, keepdims=True).astype(np.float32)
+    ux = np.sum(sin_h, axis=1, keepdims=True).astype(np.float32)
+    uy = np.sum(cos_h, axis=1, keepdims=True).astype(np.float32)
+    return vx, vy, ux, uy, heading[:, -1:].astype(np.float32)
+
+
 def window_displacement(
     length: np.ndarray,
     heading: np.ndarray,
@@ -49,24 +78,17 @@ def window_displacement(
     -------
     dx, dy, direction : ndarray of float32, shape (D, N)
     """
-    root3 = np.float32(np.sqrt(3.0))
-    # uniform on [-√3 σ, √3 σ) has standard deviation σ
-    e_len = (2.0 * noise[0] - 1.0) * (root3 * np.float32(params.step_length_std_m))
-    e_dir = (2.0 * noise[1] - 1.0) * (root3 * np.float32(np.radians(params.heading_std_deg)))
-    real = length > 0
+    length_scale, heading_scale = error_scales(params)
+    e_len = (2.0 * noise[0] - 1.0) * length_scale
+    e_dir = (2.0 * noise[1] - 1.0) * heading_scale
     known = ~np.isnan(heading).any(axis=1)
     dx = np.empty(alpha.shape, np.float32)
     dy = np.empty(alpha.shape, np.float32)
     direction = np.empty(alpha.shape, np.float32)
     if known.any():
-        rows = np.flatnonzero(known)
-        h = heading[rows]
-        sin_h, cos_h = np.sin(h) * real[rows], np.cos(h) * real[rows]
-        # V = Σ L_j u_j, U = Σ u_j, u_j = (sin θ_j, cos θ_j)
-        vx = np.sum(length[rows] * sin_h, axis=1, keepdims=True).astype(np.float32)
-        vy = np.sum(length[rows] * cos_h, axis=1, keepdims=True).astype(np.float32)
-        ux = np.sum(sin_h, axis=1, keepdims=True).astype(np.float32)
-        uy = np.sum(cos_h, axis=1, keepdims=True).astype(np.float32)
+        # every row, as a phone's windows mostly are: views, no row copies
+        rows = slice(None) if known.all() else np.flatnonzero(known)
+        vx, vy, ux, uy, last = heading_sums(length[rows], heading[rows])
         el, ed = e_len[rows], e_dir[rows]
         s, c = np.sin(ed), np.cos(ed)
         # (a, b) = V + ε_L U, rotated clockwise by ε_θ
@@ -74,10 +96,11 @@ def window_displacement(
         b = vy + el * uy
         dx[rows] = a * c + b * s
         dy[rows] = b * c - a * s
-        direction[rows] = h[:, -1:].astype(np.float32) + ed
+        direction[rows] = last + ed
     if not known.all():
         rows = np.flatnonzero(~known)
-        k = real[rows].sum(axis=1, keepdims=True).astype(np.float32)
+        real = length[rows] > 0
+        k = real.sum(axis=1, keepdims=True).astype(np.float32)
         total = length[rows].sum(axis=1, keepdims=True).astype(np.float32)
         free_dir = alpha[rows] + e_dir[rows]
         # along α: ℓ = Σ L_j + k ε_L
@@ -148,12 +171,7 @@ def displacements(
     """
     noise_t = noise.transpose(1, 0, 2)
     walking = np.array([i.walks for i in inputs])
-    # a step's length error is at most √3 σ_L; a random walk is long anyway
-    error = np.sqrt(3.0) * p.step_length_std_m
-    longest = np.array(
-        [0.0 if i.walks else i.step_length.sum() + i.step_length.size * error for i in inputs]
-    )
-    long = walking | (longest > p.max_move_m)
+    long = long_rows(inputs, p)
     if walking.all() or not walking.any():
         # one kind of motion (a site's tags, or its phones): views, no row copies
         return (*_rows_displacement(inputs, bool(walking.all()), alpha, noise_t, p), long)
@@ -165,6 +183,19 @@ def displacements(
         out = _rows_displacement(chosen, walk, alpha[rows], noise_t[:, rows], p)
         dx[rows], dy[rows], direction[rows] = out
     return dx, dy, direction, long
+
+
+def long_rows(inputs: list[FilterInput], p: ParticleFilterParams) -> np.ndarray:
+    """Return which rows' moves may exceed ``max_move_m`` and must be shortened to it.
+
+    Random walks, and windows of so many steps that their length with the
+    largest errors (√3 σ_L a step) exceeds it.
+    """
+    error = np.sqrt(3.0) * p.step_length_std_m
+    longest = np.array(
+        [0.0 if i.walks else i.step_length.sum() + i.step_length.size * error for i in inputs]
+    )
+    return np.array([i.walks for i in inputs]) | (longest > p.max_move_m)
 
 
 def _rows_displacement(

@@ -2,8 +2,10 @@
 
 Moves are checked on a flat copy of the floor raster padded with blocked
 cells, so sample points need no bounds checks. A move within the clearance
-of both its ends is free without tracing; the others are sampled every half
-cell at most, ``FloorPlan.segment_free``'s rule applied to each move.
+of both its ends is free without tracing; the others are traced from their
+start, ``FloorPlan.segment_free``'s rule (points every half cell at most)
+applied to each move, each point looked up vouching for the points within
+its clearance.
 """
 
 from __future__ import annotations
@@ -87,8 +89,9 @@ def moves_free(
     than reach(p) = clearance(p) - √2 cells cannot be on a blocked cell (p
     and a blocked cell's points lie within √2 / 2 cells of their cell
     centres). So a move is free outright when the reaches of its two ends
-    together span it (both ends are looked up anyway); for the others only
-    the points outside both reaches are looked up.
+    together span it (both ends are looked up anyway); the others are traced
+    from the start, each point looked up vouching for those within its own
+    reach (``_trace_moves``).
 
     Parameters
     ----------
@@ -121,6 +124,25 @@ def moves_free(
     return ok
 
 
+def trace_span(
+    du: np.ndarray, dv: np.ndarray, length: np.ndarray, reach0: np.ndarray, reach1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return how to trace moves (cells) the ends do not settle.
+
+    That is the step between points (tu, tv), the points per cell of length
+    (k / |move|), and the first and last point to look up. A move has
+    k = ⌈|move| / ½⌉ points after the start, h = |move| / k apart; the start
+    vouches for the points j with j h < reach0, the end for those with
+    (k - j) h < reach1 and itself. All float32, as the compiled kernel
+    computes them.
+    """
+    k = np.maximum(np.ceil(np.float32(2.0) * length), np.float32(1.0))
+    inv_h = k / np.maximum(length, np.float32(1e-6))
+    first = np.maximum(np.ceil(reach0 * inv_h), np.float32(1.0))
+    last = np.floor(np.minimum(k - reach1 * inv_h, k - np.float32(0.5)))
+    return du / k, dv / k, inv_h, first, last
+
+
 def _trace_moves(
     walls: WallRaster,
     u0: np.ndarray,
@@ -131,32 +153,26 @@ def _trace_moves(
     reach0: np.ndarray,
     reach1: np.ndarray,
 ) -> np.ndarray:
-    """Look up the half-cell points of moves (cells, flat) that neither end vouches for.
+    """Look up the points of moves (cells, flat) that neither end vouches for.
 
-    Moves are sorted by how many points they need, most first, so that the
-    moves still being traced at step j are a leading slice.
+    A sphere trace: point j = first, first + 1, … is p₀ + j Δp / k; a point
+    on a blocked cell ends its move, one on a free cell vouches for the next
+    ⌈reach · k / |move|⌉ - 1 points, which are skipped. In rounds over the
+    moves still being traced, each round one point of each: about half the
+    lookups of every point outside the ends' reach.
     """
-    # k = ⌈|move| / ½⌉ points after the start, h = |move| / k apart
-    k = np.maximum(np.ceil(2.0 * length), 1.0).astype(np.float32)
-    inv_h = k / np.maximum(length, np.float32(1e-6))
-    # the start vouches for j h < reach0, the end for (k - j) h < reach1 and itself
-    first = np.maximum(np.ceil(reach0 * inv_h), 1.0)
-    last = np.floor(np.minimum(k - reach1 * inv_h, k - 0.5))
-    count = np.maximum(last - first + 1.0, 0.0).astype(np.uint16)
-    # a radix sort on small integers, most points first
-    order = np.argsort(np.iinfo(np.uint16).max - count, kind="stable")
-    count = count[order]
-    tu, tv = du[order] / k[order], dv[order] / k[order]
-    # p = p₀ + j Δp / k from the first point to look up, then one step a time
-    su = u0[order] + first[order] * tu
-    sv = v0[order] + first[order] * tv
-    active = np.searchsorted(-count.astype(np.int32), -np.arange(1, int(count[0]) + 1), "right")
-    good = np.ones(count.size, bool)
-    for m in active.tolist():
-        free = walls.free.take(walls.index(su[:m], sv[:m]), mode="clip")
-        np.logical_and(good[:m], free, out=good[:m])
-        su[:m] += tu[:m]
-        sv[:m] += tv[:m]
-    out = np.empty(count.size, bool)
-    out[order] = good
-    return out
+    root2 = np.float32(np.sqrt(2.0))
+    tu, tv, inv_h, j, last = trace_span(du, dv, length, reach0, reach1)
+    good = np.ones(u0.size, bool)
+    active = np.flatnonzero(j <= last)
+    while active.size:
+        at = j[active]
+        u = u0[active] + at * tu[active]
+        v = v0[active] + at * tv[active]
+        clearance = walls.clearance.take(walls.index(u, v), mode="clip")
+        free = clearance > 0
+        good[active] = free
+        # the next point outside this one's reach: j + max(⌈(c - √2) k / |move|⌉, 1)
+        j[active] = at + np.maximum(np.ceil((clearance - root2) * inv_h[active]), np.float32(1.0))
+        active = active[free & (j[active] <= last[active])]
+    return good
