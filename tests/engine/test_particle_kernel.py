@@ -12,7 +12,7 @@ from app.engine.particle.bank import ParticleBank
 from app.engine.particle.estimate import RADIUS_EDGES, FilterEstimate, cloud_estimate
 from app.engine.particle.floor_model import build_floor_models
 from app.engine.particle.inputs import FilterInput
-from app.engine.particle.motion import settle_moves, window_displacement
+from app.engine.particle.motion import settle_moves, walk_displacement, window_displacement
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.update import update_filters
 from app.engine.pathloss import expected_rssi, ranges_3d
@@ -164,6 +164,23 @@ def test_compiled_window_moves_equal_the_reference_displacement() -> None:
     alpha = rng.random((6, 700), dtype=np.float32)
     ref = window_displacement(length, heading, alpha, noise.transpose(1, 0, 2), P)
     got = kernel.window_moves(length, heading, noise, P)
+    for a, b in zip(ref, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_compiled_walk_moves_equal_the_reference_random_walk() -> None:
+    rng = np.random.default_rng(13)
+    dt = rng.uniform(0.5, 20.0, (5, 1))
+    noise = np.stack(
+        [
+            rng.standard_exponential((5, 600), dtype=np.float32),
+            rng.random((5, 600), dtype=np.float32),
+        ],
+        axis=1,
+    )
+    alpha = rng.uniform(-np.pi, np.pi, (5, 600)).astype(np.float32)
+    ref = walk_displacement(dt, alpha, noise.transpose(1, 0, 2), P)
+    got = kernel.walk_moves(dt, alpha, noise, P)
     for a, b in zip(ref, got, strict=True):
         np.testing.assert_array_equal(a, b)
 

@@ -30,7 +30,13 @@ from app.engine.particle.estimate import (
 )
 from app.engine.particle.floor_model import FloorModel
 from app.engine.particle.inputs import FilterInput, steps_table
-from app.engine.particle.motion import displacements, error_scales, heading_sums, long_rows
+from app.engine.particle.motion import (
+    displacements,
+    error_scales,
+    heading_sums,
+    long_rows,
+    walk_scales,
+)
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.walls import WallRaster
 from app.engine.particle.weights import reading_weights
@@ -54,17 +60,22 @@ def move_particles(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step 2 for moving filters, as ``motion.move_particles``, the moves checked compiled.
 
-    Windows of steps with headings (a phone's, mostly) are moved by
-    ``window_moves``; other rows by the reference's ``motion.displacements``.
+    Chunks of random walks (tags) are moved by ``walk_moves``, chunks of
+    windows of steps with headings (phones) by ``window_moves``, others by the
+    reference's ``motion.displacements``.
     """
-    dx = None
-    if not any(i.walks for i in inputs):
+    moves = None
+    walking = [i.walks for i in inputs]
+    if all(walking):
+        moves = walk_moves(np.array([[i.walk_s] for i in inputs]), alpha, noise, p)
+    elif not any(walking):
         length, heading = steps_table(inputs)
         if not np.isnan(heading).any():
-            dx, dy, direction = window_moves(length, heading, noise, p)
-            long = long_rows(inputs, p)
-    if dx is None:
+            moves = window_moves(length, heading, noise, p)
+    if moves is None:
         dx, dy, direction, long = displacements(alpha, inputs, noise, p)
+    else:
+        (dx, dy, direction), long = moves, long_rows(inputs, p)
     return settle_moves(model, x, y, dx, dy, direction, noise[:, 1], long, p.max_move_m)
 
 
@@ -81,6 +92,53 @@ def window_moves(
     return _window_moves(
         noise, turn, np.sin(turn), np.cos(turn), vx, vy, ux, uy, last, length_scale
     )
+
+
+def walk_moves(
+    dt_s: np.ndarray, alpha: np.ndarray, noise: np.ndarray, p: ParticleFilterParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for random walks, as ``motion.walk_displacement``.
+
+    A compiled pass for the directions and steps, numpy's sin and cos, a
+    compiled pass for the moves.
+    """
+    dt, turn_scale, speed_scale = walk_scales(dt_s, p)
+    direction, step = _walk_directions(alpha, noise, dt, turn_scale, speed_scale)
+    return (*_scaled(step, np.sin(direction), np.cos(direction)), direction)
+
+
+@njit(cache=True)
+def _walk_directions(
+    alpha: np.ndarray,
+    noise: np.ndarray,
+    dt: np.ndarray,
+    turn_scale: np.ndarray,
+    speed_scale: np.float32,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Return α + (2u - 1) √3 σ_turn √Δt and σ_v √(2E) Δt of every particle."""
+    rows, n = alpha.shape
+    direction = np.empty((rows, n), np.float32)
+    step = np.empty((rows, n), np.float32)
+    for r in range(rows):
+        for i in range(n):
+            direction[r, i] = alpha[r, i] + (_TWO * noise[r, 1, i] - _ONE) * turn_scale[r, 0]
+            step[r, i] = speed_scale * np.sqrt(_TWO * noise[r, 0, i]) * dt[r, 0]
+    return direction, step
+
+
+@njit(cache=True)
+def _scaled(
+    step: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Return step · sin α and step · cos α."""
+    rows, n = step.shape
+    dx = np.empty((rows, n), np.float32)
+    dy = np.empty((rows, n), np.float32)
+    for r in range(rows):
+        for i in range(n):
+            dx[r, i] = step[r, i] * sin_a[r, i]
+            dy[r, i] = step[r, i] * cos_a[r, i]
+    return dx, dy
 
 
 @njit(cache=True)
@@ -148,7 +206,6 @@ def settle_moves(
         turn,
         long,
         np.float32(max_move_m),
-        walls.free,
         walls.clearance,
         walls.stride,
         *_cell_transform(walls),
@@ -177,7 +234,6 @@ def _settle(
     turn: np.ndarray,
     long: np.ndarray,
     max_move: np.float32,
-    free: np.ndarray,
     clearance: np.ndarray,
     stride: int,
     inv: np.float32,
@@ -225,9 +281,11 @@ def _settle(
             du, dv = u1 - u0, v1 - v0
             length = np.sqrt(du * du + dv * dv)
             k1 = int(v1) * stride + int(u1)
-            end_free = free[k1] != 0
+            # a cell is free where its clearance is positive (at least a cell)
+            clear1 = clearance[k1]
+            end_free = clear1 > np.float32(0.0)
             reach0 = clearance[int(v0) * stride + int(u0)] - _ROOT2
-            reach1 = clearance[k1] - _ROOT2
+            reach1 = clear1 - _ROOT2
             # free ⇐ every point lies within the reach of one end
             made = end_free & (reach0 + reach1 > length)
             trace = end_free & ~made

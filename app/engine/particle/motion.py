@@ -111,6 +111,20 @@ def window_displacement(
     return dx, dy, direction
 
 
+def walk_scales(
+    dt_s: np.ndarray, params: ParticleFilterParams
+) -> tuple[np.ndarray, np.ndarray, np.float32]:
+    """Return the scales of a random walk's draws, in float32.
+
+    Δt (s) and the turn's √3 σ_turn √Δt (rad), columns of shape (D, 1), and
+    the speed prior's σ_v (m/s).
+    """
+    dt = np.asarray(dt_s, dtype=np.float32)
+    root3 = np.float32(np.sqrt(3.0))
+    turn_sd = np.float32(np.radians(params.walk_turn_std_deg))
+    return dt, root3 * turn_sd * np.sqrt(dt), np.float32(params.walk_speed_mps)
+
+
 def walk_displacement(
     dt_s: np.ndarray, alpha: np.ndarray, noise: np.ndarray, params: ParticleFilterParams
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -134,13 +148,11 @@ def walk_displacement(
     -------
     dx, dy, direction : ndarray of float32, shape (D, N)
     """
-    dt = np.asarray(dt_s, dtype=np.float32)
-    root3 = np.float32(np.sqrt(3.0))
-    turn_sd = np.float32(np.radians(params.walk_turn_std_deg))
+    dt, turn_scale, speed_scale = walk_scales(dt_s, params)
     # turn ~ uniform with σ = σ_turn √Δt
-    direction = alpha + (2.0 * noise[1] - 1.0) * (root3 * turn_sd * np.sqrt(dt))
+    direction = alpha + (2.0 * noise[1] - 1.0) * turn_scale
     # |v| = σ_v √(2 E), Δ = |v| Δt (sin α, cos α)
-    speed = np.float32(params.walk_speed_mps) * np.sqrt(np.float32(2.0) * noise[0])
+    speed = speed_scale * np.sqrt(np.float32(2.0) * noise[0])
     step = speed * dt
     return step * np.sin(direction), step * np.cos(direction), direction
 
