@@ -163,7 +163,7 @@ def test_compiled_window_moves_equal_the_reference_displacement() -> None:
     noise = rng.random((6, 2, 700), dtype=np.float32)
     alpha = rng.random((6, 700), dtype=np.float32)
     ref = window_displacement(length, heading, alpha, noise.transpose(1, 0, 2), P)
-    got = kernel.window_moves(length, heading, noise, P)
+    got = kernel.window_moves(length, heading, alpha, noise.transpose(1, 0, 2), P)
     for a, b in zip(ref, got, strict=True):
         np.testing.assert_array_equal(a, b)
 
@@ -180,7 +180,7 @@ def test_compiled_walk_moves_equal_the_reference_random_walk() -> None:
     )
     alpha = rng.uniform(-np.pi, np.pi, (5, 600)).astype(np.float32)
     ref = walk_displacement(dt, alpha, noise.transpose(1, 0, 2), P)
-    got = kernel.walk_moves(dt, alpha, noise, P)
+    got = kernel.walk_moves(dt, alpha, noise.transpose(1, 0, 2), P)
     for a, b in zip(ref, got, strict=True):
         np.testing.assert_array_equal(a, b)
 

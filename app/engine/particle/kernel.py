@@ -29,13 +29,14 @@ from app.engine.particle.estimate import (
     RADIUS_EDGES,
 )
 from app.engine.particle.floor_model import FloorModel
-from app.engine.particle.inputs import FilterInput, steps_table
+from app.engine.particle.inputs import FilterInput
 from app.engine.particle.motion import (
+    Moves,
     displacements,
     error_scales,
     heading_sums,
-    long_rows,
     walk_scales,
+    window_displacement,
 )
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.walls import WallRaster
@@ -58,34 +59,27 @@ def move_particles(
     noise: np.ndarray,
     p: ParticleFilterParams,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Step 2 for moving filters, as ``motion.move_particles``, the moves checked compiled.
-
-    Chunks of random walks (tags) are moved by ``walk_moves``, chunks of
-    windows of steps with headings (phones) by ``window_moves``, others by the
-    reference's ``motion.displacements``.
-    """
-    moves = None
-    walking = [i.walks for i in inputs]
-    if all(walking):
-        moves = walk_moves(np.array([[i.walk_s] for i in inputs]), alpha, noise, p)
-    elif not any(walking):
-        length, heading = steps_table(inputs)
-        if not np.isnan(heading).any():
-            moves = window_moves(length, heading, noise, p)
-    if moves is None:
-        dx, dy, direction, long = displacements(alpha, inputs, noise, p)
-    else:
-        (dx, dy, direction), long = moves, long_rows(inputs, p)
+    """Step 2 for moving filters, as ``motion.move_particles``, moves and checks compiled."""
+    dx, dy, direction, long = displacements(
+        alpha, inputs, noise, p, walk=walk_moves, window=window_moves
+    )
     return settle_moves(model, x, y, dx, dy, direction, noise[:, 1], long, p.max_move_m)
 
 
 def window_moves(
-    length: np.ndarray, heading: np.ndarray, noise: np.ndarray, p: ParticleFilterParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Step 2 for rows whose steps all have headings, as ``motion.window_displacement``.
+    length: np.ndarray,
+    heading: np.ndarray,
+    alpha: np.ndarray,
+    noise: np.ndarray,
+    p: ParticleFilterParams,
+) -> Moves:
+    """Step 2 for windows of steps, as ``motion.window_displacement``.
 
-    One compiled pass for the errors, numpy's sin and cos, one pass for the moves.
+    One compiled pass for the errors, numpy's sin and cos, one pass for the
+    moves; rows with a step without a heading take the reference's path.
     """
+    if np.isnan(heading).any():
+        return window_displacement(length, heading, alpha, noise, p)
     vx, vy, ux, uy, last = heading_sums(length, heading)
     length_scale, heading_scale = error_scales(p)
     turn = _heading_errors(noise, heading_scale)
@@ -96,7 +90,7 @@ def window_moves(
 
 def walk_moves(
     dt_s: np.ndarray, alpha: np.ndarray, noise: np.ndarray, p: ParticleFilterParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> Moves:
     """Step 2 for random walks, as ``motion.walk_displacement``.
 
     A compiled pass for the directions and steps, numpy's sin and cos, a
@@ -121,8 +115,8 @@ def _walk_directions(
     step = np.empty((rows, n), np.float32)
     for r in range(rows):
         for i in range(n):
-            direction[r, i] = alpha[r, i] + (_TWO * noise[r, 1, i] - _ONE) * turn_scale[r, 0]
-            step[r, i] = speed_scale * np.sqrt(_TWO * noise[r, 0, i]) * dt[r, 0]
+            direction[r, i] = alpha[r, i] + (_TWO * noise[1, r, i] - _ONE) * turn_scale[r, 0]
+            step[r, i] = speed_scale * np.sqrt(_TWO * noise[0, r, i]) * dt[r, 0]
     return direction, step
 
 
@@ -143,12 +137,12 @@ def _scaled(
 
 @njit(cache=True)
 def _heading_errors(noise: np.ndarray, scale: np.float32) -> np.ndarray:  # pragma: no cover
-    """Return ε_θ = (2u - 1) √3 σ_θ of every particle from its uniform ``noise[r, 1]``."""
-    rows, _, n = noise.shape
+    """Return ε_θ = (2u - 1) √3 σ_θ of every particle from its uniform ``noise[1]``."""
+    _, rows, n = noise.shape
     out = np.empty((rows, n), np.float32)
     for r in range(rows):
         for i in range(n):
-            out[r, i] = (_TWO * noise[r, 1, i] - _ONE) * scale
+            out[r, i] = (_TWO * noise[1, r, i] - _ONE) * scale
     return out
 
 
@@ -172,7 +166,7 @@ def _window_moves(
     direction = np.empty((rows, n), np.float32)
     for r in range(rows):
         for i in range(n):
-            error = (_TWO * noise[r, 0, i] - _ONE) * length_scale
+            error = (_TWO * noise[0, r, i] - _ONE) * length_scale
             a = vx[r, 0] + error * ux[r, 0]
             b = vy[r, 0] + error * uy[r, 0]
             c, s = cos_t[r, i], sin_t[r, i]

@@ -10,12 +10,17 @@ speed Rayleigh.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from app.engine.particle.floor_model import FloorModel
 from app.engine.particle.inputs import FilterInput, steps_table
 from app.engine.particle.params import ParticleFilterParams
 from app.engine.particle.walls import moves_free
+
+Moves = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""Each particle's move (dx, dy, m) and new direction (rad), float32 arrays of shape (R, N)."""
 
 
 def error_scales(params: ParticleFilterParams) -> tuple[np.float32, np.float32]:
@@ -162,6 +167,8 @@ def displacements(
     inputs: list[FilterInput],
     noise: np.ndarray,
     p: ParticleFilterParams,
+    walk: Callable[..., Moves] = walk_displacement,
+    window: Callable[..., Moves] = window_displacement,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Step 2 for moving filters: each particle's intended move and direction.
 
@@ -180,24 +187,33 @@ def displacements(
     long : ndarray of bool, shape (R,)
         Rows whose moves may exceed ``max_move_m`` (random walks, windows of
         many steps) and must be shortened to it.
+
+    ``walk`` and ``window`` move the rows of each kind, with the signatures of
+    ``walk_displacement`` and ``window_displacement`` (the compiled kernel
+    passes its own).
     """
     noise_t = noise.transpose(1, 0, 2)
     walking = np.array([i.walks for i in inputs])
-    long = long_rows(inputs, p)
+    long = _long_rows(inputs, p)
     if walking.all() or not walking.any():
         # one kind of motion (a site's tags, or its phones): views, no row copies
-        return (*_rows_displacement(inputs, bool(walking.all()), alpha, noise_t, p), long)
+        walks = bool(walking.all())
+        kind = walk if walks else window
+        return (*_rows_displacement(inputs, kind, walks, alpha, noise_t, p), long)
     dx = np.empty(alpha.shape, np.float32)
     dy = np.empty(alpha.shape, np.float32)
     direction = np.empty(alpha.shape, np.float32)
-    for rows, walk in ((np.flatnonzero(~walking), False), (np.flatnonzero(walking), True)):
+    for rows, kind, walks in (
+        (np.flatnonzero(~walking), window, False),
+        (np.flatnonzero(walking), walk, True),
+    ):
         chosen = [inputs[r] for r in rows]
-        out = _rows_displacement(chosen, walk, alpha[rows], noise_t[:, rows], p)
+        out = _rows_displacement(chosen, kind, walks, alpha[rows], noise_t[:, rows], p)
         dx[rows], dy[rows], direction[rows] = out
     return dx, dy, direction, long
 
 
-def long_rows(inputs: list[FilterInput], p: ParticleFilterParams) -> np.ndarray:
+def _long_rows(inputs: list[FilterInput], p: ParticleFilterParams) -> np.ndarray:
     """Return which rows' moves may exceed ``max_move_m`` and must be shortened to it.
 
     Random walks, and windows of so many steps that their length with the
@@ -212,16 +228,17 @@ def long_rows(inputs: list[FilterInput], p: ParticleFilterParams) -> np.ndarray:
 
 def _rows_displacement(
     inputs: list[FilterInput],
-    walk: bool,
+    move: Callable[..., Moves],
+    walks: bool,
     alpha: np.ndarray,
     noise: np.ndarray,
     p: ParticleFilterParams,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> Moves:
     """Step 2 for rows that all walk at random or all take steps: moves and directions."""
-    if walk:
-        return walk_displacement(np.array([[i.walk_s] for i in inputs]), alpha, noise, p)
+    if walks:
+        return move(np.array([[i.walk_s] for i in inputs]), alpha, noise, p)
     length, heading = steps_table(inputs)
-    return window_displacement(length, heading, alpha, noise, p)
+    return move(length, heading, alpha, noise, p)
 
 
 def settle_moves(
