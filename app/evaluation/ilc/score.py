@@ -132,6 +132,7 @@ class Row:
     radius_rank: float
     cpu_per_update_s: float
     walks: int
+    walks_off_floor: int = 0
 
 
 def radius_rank(error: np.ndarray, radius: np.ndarray) -> float:
@@ -173,4 +174,5 @@ def summarise(method: str, scores: Sequence[WalkScore], cpu_s: float, updates: i
         radius_rank=radius_rank(right, acc[ok]),
         cpu_per_update_s=cpu_s / updates if updates else float("nan"),
         walks=len(scores),
+        walks_off_floor=sum(s.floor_ok.size > 0 and s.floor_ok.mean() < 0.5 for s in scores),
     )

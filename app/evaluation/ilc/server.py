@@ -312,6 +312,9 @@ def split_site(args: argparse.Namespace) -> tuple[Path, list[str], list[Walk], l
     train = [w for w in train if walk_unit(f"{w}/survey") < args.train_share]
     held_ids = set(validation if args.validation_fraction > 0 else test)
     surveyed = set(train) - set(validation)
+    if args.survey_walks is not None:
+        floor_of = {path.name.split(".")[0]: f for f, path in pairs}
+        surveyed = set(thin_surveys(sorted(surveyed), floor_of, args.survey_walks))
     walks = [read_walk(path, floor) for floor, path in pairs]
     floors = sorted({f for f, _ in pairs}, key=lambda n: read_floor(site_dir / n).level)
     held = sorted(
@@ -319,6 +322,19 @@ def split_site(args: argparse.Namespace) -> tuple[Path, list[str], list[Walk], l
         key=lambda w: w.walk_id,
     )
     return site_dir, floors, [w for w in walks if w.walk_id in surveyed], held
+
+
+def thin_surveys(walk_ids: Sequence[str], floor_of: dict[str, str], per_floor: int) -> list[str]:
+    """Return at most ``per_floor`` of the walks of each floor, the same ones on every run.
+
+    Walks are ranked on each floor by an independent hash of their id, so a
+    thinner survey is a subset of a thicker one: the walks a site surveyed
+    in an afternoon rather than in a week.
+    """
+    by_floor: dict[str, list[str]] = {}
+    for walk_id in sorted(walk_ids, key=lambda w: walk_unit(f"{w}/thin")):
+        by_floor.setdefault(floor_of[walk_id], []).append(walk_id)
+    return sorted(w for walks in by_floor.values() for w in walks[:per_floor])
 
 
 def add_site_arguments(parser: argparse.ArgumentParser, validation_use: str) -> None:
@@ -330,6 +346,13 @@ def add_site_arguments(parser: argparse.ArgumentParser, validation_use: str) -> 
         type=float,
         default=1.0,
         help="survey only this share of the training walks (by walk id hash)",
+    )
+    parser.add_argument(
+        "--survey-walks",
+        type=int,
+        default=None,
+        metavar="N",
+        help="survey at most N training walks a floor (chosen by walk id hash)",
     )
     parser.add_argument("--wifi-times", choices=WIFI_TIMES, default="scan")
 
