@@ -126,6 +126,9 @@ class SiteTuning:
         square of the held-out k-NN errors (``app.engine.scan_knn_cv``).
     walk_noise_m2_per_s : float
         The HMM's transition noise beyond the steps' own (m² per second).
+    floor_classifier_weight : float
+        Temper of the per-scan floor classifier in the HMM's floor evidence
+        (0: the radio map's evidence alone).
     """
 
     weinberg_k: float
@@ -148,6 +151,7 @@ class SiteTuning:
     scan_knn_unshared_penalty: float = ScanKnnParams().unshared_penalty
     fix_sigma_m: float = HmmParams().fix_sigma_m
     walk_noise_m2_per_s: float = HmmParams().walk_noise_m2_per_s
+    floor_classifier_weight: float = HmmParams().floor_classifier_weight
 
     @classmethod
     def defaults(cls) -> SiteTuning:
@@ -198,6 +202,7 @@ class SiteTuning:
             fix_nats=self.fix_nats,
             fix_sigma_m=self.fix_sigma_m,
             walk_noise_m2_per_s=self.walk_noise_m2_per_s,
+            floor_classifier_weight=self.floor_classifier_weight,
             references=self.scan_knn((base or HmmParams()).references),
         )
 

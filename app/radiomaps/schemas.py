@@ -107,6 +107,8 @@ class SiteTuningRead(BaseModel):
     """Spread (m) of each neighbour of the HMM's k-NN fix: the held-out k-NN errors' RMS."""
     walk_noise_m2_per_s: float = 0.05
     """The HMM's transition noise beyond the steps' own (m² per second)."""
+    floor_classifier_weight: float = 0.0
+    """Temper of the per-scan floor classifier in the HMM's floor evidence (0: off)."""
 
 
 class TuningScores(BaseModel):
@@ -116,6 +118,7 @@ class TuningScores(BaseModel):
     hmm_walk_error_m_by_fix_weight: dict[str, float | None] = {}
     hmm_walk_error_m_by_walk_noise: dict[str, float | None] = {}
     wrong_floor_share_by_floor_weight: dict[str, float | None] = {}
+    wrong_floor_share_by_floor_classifier_weight: dict[str, float | None] = {}
     floor_pairs: int = 0
     fixed_lag_walk_error_m_by_fix_scale: dict[str, float | None] = {}
     full_pass_walk_error_m_by_fix_scale: dict[str, float | None] = {}

@@ -25,7 +25,14 @@ from app.core.errors import Conflict, NotFound
 from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
 from app.engine.hmm.emission import EmissionModel
-from app.engine.hmm.floor_validate import FloorWalk, floor_pair_scores
+from app.engine.hmm.floor_validate import (
+    DEFAULT_FLOOR_CLASSIFIER_WEIGHT,
+    FLOOR_CLASSIFIER_WEIGHT_CANDIDATES,
+    FloorWalk,
+    WalkEvidence,
+    pair_shares,
+    walk_evidence,
+)
 from app.engine.hmm.params import HmmParams
 from app.engine.hmm.validate import (
     HeldWalk,
@@ -353,7 +360,15 @@ def compute_build(
         progress=lambda x: report(0.65 + 0.3 * x),
     )
     chosen = replays.choose()
-    tuned = tune_site(measured, validation, chosen[0] if chosen else None, floor_replays.choose())
+    floors_chosen = floor_replays.choose()
+    tuned = tune_site(
+        measured,
+        validation,
+        chosen[0] if chosen else None,
+        floors_chosen[0] if floors_chosen else None,
+    )
+    if floors_chosen is not None:
+        tuned = replace(tuned, floor_classifier_weight=floors_chosen[1])
     tuning = replace(_with_knn(tuned, knn, spread), wifi_max_age_ms=max_age)
     if chosen is not None:
         tuning = replace(tuning, fix_nats=chosen[1], walk_noise_m2_per_s=chosen[2])
@@ -408,7 +423,13 @@ def compute_build(
         accuracy,
         tuning,
         _tuning_scores(
-            validation, replays, floor_replays.scores, smoothers, age_scores, knn_scores
+            validation,
+            replays,
+            floor_replays.scores,
+            floor_replays.classifier_scores(tuning.floor_weight) if floors_chosen else {},
+            smoothers,
+            age_scores,
+            knn_scores,
         ),
     )
     report(1.0)
@@ -602,8 +623,9 @@ class HmmReplays:
 
 class FloorReplays:
     """Held-out survey walks joined across floors, their floor followed under each floor
-    weight on each fold's maps (``app.engine.hmm.floor_validate``); every walk with WiFi
-    is replayed. Without ``params`` (no tuning) nothing is."""
+    weight and floor-classifier weight on each fold's maps
+    (``app.engine.hmm.floor_validate``); every walk with WiFi is replayed. Without
+    ``params`` (no tuning) nothing is."""
 
     def __init__(
         self, inputs: BuildInputs, tx_ids: tuple[str, ...], params: HmmParams | None
@@ -615,29 +637,56 @@ class FloorReplays:
             for w, s in enumerate(inputs.surveys):
                 if s.t.size:
                     self.walks[w] = FloorWalk(s.wifi(index), inputs.site.floor_index[s.floor_id])
-        self.scores: dict[float, list[float]] = {w: [] for w in FLOOR_WEIGHT_CANDIDATES}
+        self.evidence: list[WalkEvidence] = []
+        self.floor_of_map: list[np.ndarray] = []
+        self.folds: list[slice] = []
 
     def on_fold(
         self, maps: tuple[RadioMap, ...], test: np.ndarray, walk_of_scan: np.ndarray
     ) -> None:
-        """Replay the fold's held-out walks, joined in pairs across floors, on its maps."""
+        """Gather the floor evidence of the fold's held-out walks on its maps."""
         held = [w for w in np.unique(walk_of_scan[test]).tolist() if w in self.walks]
         walks = [self.walks[w] for w in held]
         if len({walk.floor for walk in walks}) < 2:
             # nothing to join across floors
             return
         model = EmissionModel(maps, self.params)
-        for weight, pairs in floor_pair_scores(
-            model, walks, FLOOR_WEIGHT_CANDIDATES, self.params
-        ).items():
-            self.scores[weight] += pairs
+        start = len(self.evidence)
+        self.evidence += walk_evidence(model, walks, FLOOR_WEIGHT_CANDIDATES, self.params)
+        self.folds.append(slice(start, len(self.evidence)))
+        self.floor_of_map.append(np.asarray(model.floors, dtype=np.int64))
 
-    def choose(self) -> float | None:
-        """Return the floor weight the one-standard-error rule takes over the pairs' shares
-        of scans on a wrong floor; None without pairs."""
-        if not all(self.scores.values()):
+    def _scores(self, weight: int, classifier_weight: float) -> list[float]:
+        """Return every fold's pairs' shares of scans on a wrong floor under one setting."""
+        out: list[float] = []
+        for fold, floors in zip(self.folds, self.floor_of_map, strict=True):
+            out += pair_shares(self.evidence[fold], weight, classifier_weight, floors, self.params)
+        return out
+
+    @property
+    def scores(self) -> dict[float, list[float]]:
+        """Return the pairs' shares of scans on a wrong floor per floor weight, the radio
+        map's evidence alone."""
+        return {w: self._scores(k, 0.0) for k, w in enumerate(FLOOR_WEIGHT_CANDIDATES)}
+
+    def classifier_scores(self, floor_weight: float) -> dict[float, list[float]]:
+        """Return the pairs' shares per floor-classifier weight, under ``floor_weight``."""
+        k = FLOOR_WEIGHT_CANDIDATES.index(floor_weight)
+        return {c: self._scores(k, c) for c in FLOOR_CLASSIFIER_WEIGHT_CANDIDATES}
+
+    def choose(self) -> tuple[float, float] | None:
+        """Return the floor weight, then the classifier weight under it, each as the
+        one-standard-error rule takes over the pairs' shares; None without pairs."""
+        if not self.folds:
             return None
-        return one_standard_error_choice(self.scores, self.params.floor_weight)
+        scores = self.scores
+        if not all(scores.values()):
+            return None
+        floor_weight = one_standard_error_choice(scores, self.params.floor_weight)
+        classifier = one_standard_error_choice(
+            self.classifier_scores(floor_weight), DEFAULT_FLOOR_CLASSIFIER_WEIGHT
+        )
+        return floor_weight, classifier
 
 
 def _replayed_key(tuning: SiteTuning) -> HmmKey:
@@ -659,6 +708,7 @@ def _tuning_scores(
     validation: CrossValidation | None,
     replays: HmmReplays,
     floor_scores: dict[float, list[float]],
+    classifier_scores: dict[float, list[float]],
     smoothers: dict[str, dict[float, list[float]]],
     age_scores: dict[float, list[float]],
     knn_scores: dict[str, dict[float, list[float]]],
@@ -680,6 +730,9 @@ def _tuning_scores(
         "hmm_walk_error_m_by_walk_noise": by_value("walk_noise_m2_per_s"),
         "wrong_floor_share_by_floor_weight": {
             str(w): _r(float(np.mean(v)), 4) for w, v in floor_scores.items() if v
+        },
+        "wrong_floor_share_by_floor_classifier_weight": {
+            str(c): _r(float(np.mean(v)), 4) for c, v in classifier_scores.items() if v
         },
         "floor_pairs": min((len(v) for v in floor_scores.values()), default=0),
         "fixed_lag_walk_error_m_by_fix_scale": by_scale("fixed_lag"),

@@ -26,6 +26,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
+from app.engine.hmm.floor_classifier import FloorClassifier, fit_floor_classifier
 from app.engine.hmm.kernels import mixture_log_density, pooled_emission
 from app.engine.hmm.params import HmmParams
 from app.engine.plan import FloorPlan
@@ -111,6 +112,7 @@ class EmissionModel:
         self.ref_blocks: list[slice] = []
         if self.maps and all(m.references is not None for m in self.maps):
             self._prepare_references()
+        self._classifier: FloorClassifier | None = None
         self._cache: tuple[bytes, np.ndarray] | None = None
         self._evidence: tuple[bytes, list[np.ndarray], np.ndarray] | None = None
         self._near: tuple[bytes, int, tuple[np.ndarray, np.ndarray] | None] | None = None
@@ -208,6 +210,40 @@ class EmissionModel:
         gaps.
         """
         return self._scan_evidence(tx, rssi)[1]
+
+    @property
+    def floor_classifier(self) -> FloorClassifier | None:
+        """Return the floor classifier of the maps' survey scans (fitted on first use).
+
+        None where the maps carry no survey scans.
+        """
+        refs = self.references
+        if refs is None:
+            return None
+        if self._classifier is None:
+            features = sparse.csr_matrix(
+                (refs.scan_level, refs.scan_col, refs.scan_start),
+                shape=(refs.n_scans, refs.n_usable),
+            )
+            map_of_floor = {floor: i for i, floor in enumerate(self.floors)}
+            labels = np.array([map_of_floor[int(f)] for f in refs.floor], dtype=np.int64)
+            self._classifier = fit_floor_classifier(
+                features, labels, len(self.maps), refs.column, self.params.floor_classifier
+            )
+        return self._classifier
+
+    def floor_classifier_log_probs(self, tx: np.ndarray, rssi: np.ndarray) -> np.ndarray:
+        """Return the floor classifier's ln p(map | scan), (F,).
+
+        Zeros (no evidence) where there is no classifier.
+        """
+        classifier = self.floor_classifier
+        refs = self.references
+        if classifier is None or refs is None:
+            return np.zeros(len(self.maps))
+        tx, rssi = np.asarray(tx, dtype=np.int64), np.asarray(rssi, dtype=float)
+        level = np.maximum(rssi - refs.params.floor_dbm, 0.0)
+        return classifier.log_probs(tx, level)
 
     def floor_log_marginals_by_weight(
         self, tx: np.ndarray, rssi: np.ndarray, weights: Sequence[float]

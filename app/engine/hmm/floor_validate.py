@@ -28,6 +28,13 @@ from app.engine.samples import RssiReadings
 from app.engine.scans import group_scans
 from app.engine.wknn import unique_readings
 
+FLOOR_CLASSIFIER_WEIGHT_CANDIDATES = (0.0, 0.1, 0.2, 0.4, 0.8)
+"""Tempers of the floor classifier's log-probabilities (``HmmParams.floor_classifier_weight``)
+a build replays held-out walks, joined in pairs across floors, with."""
+
+DEFAULT_FLOOR_CLASSIFIER_WEIGHT = 0.2
+"""The classifier weight the one-standard-error rule stays nearest to."""
+
 
 @dataclass(frozen=True, eq=False)
 class FloorWalk:
@@ -39,9 +46,10 @@ class FloorWalk:
 
 def walk_floor_evidence(
     model: EmissionModel, rssi: RssiReadings, weights: Sequence[float], params: HmmParams
-) -> np.ndarray:
-    """Return every scan's floor evidence under each weight, (W, S, F), scans in time order.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return every scan's floor evidence (W, S, F) and classifier log-probabilities (S, F).
 
+    The evidence is under each of ``weights``; scans are in time order.
     Readings are grouped into scans as the tracker groups them, mapped
     transmitters only.
     """
@@ -51,13 +59,13 @@ def walk_floor_evidence(
     level = np.asarray(rssi.rssi, dtype=float)[order]
     mapped = model.is_mapped(tx)
     t, tx, level = t[mapped], tx[mapped], level[mapped]
-    scans = [
-        model.floor_log_marginals_by_weight(*unique_readings(tx[g], level[g]), weights)
-        for g in group_scans(t, tx, params.scans)
-    ]
+    scans = [unique_readings(tx[g], level[g]) for g in group_scans(t, tx, params.scans)]
+    n_floors = len(model.maps)
     if not scans:
-        return np.zeros((len(weights), 0, len(model.maps)))
-    return np.stack(scans, axis=1)
+        return np.zeros((len(weights), 0, n_floors)), np.zeros((0, n_floors))
+    marginals = np.stack([model.floor_log_marginals_by_weight(*s, weights) for s in scans], axis=1)
+    classified = np.stack([model.floor_classifier_log_probs(*s) for s in scans])
+    return marginals, classified
 
 
 def floor_pairs(floors: Sequence[int]) -> list[tuple[int, int]]:
@@ -71,28 +79,74 @@ def floor_pairs(floors: Sequence[int]) -> list[tuple[int, int]]:
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class WalkEvidence:
+    """A held-out walk's per-scan floor evidence and its true floor index.
+
+    ``marginals`` is the radio map's under each floor weight (W, S, F),
+    ``classified`` the classifier's log-probabilities (S, F).
+    """
+
+    marginals: np.ndarray
+    classified: np.ndarray
+    floor: int
+
+
+def walk_evidence(
+    model: EmissionModel, walks: Sequence[FloorWalk], weights: Sequence[float], params: HmmParams
+) -> list[WalkEvidence]:
+    """Return the floor evidence of every walk that has scans (``walk_floor_evidence``)."""
+    out = []
+    for walk in walks:
+        marginals, classified = walk_floor_evidence(model, walk.rssi, weights, params)
+        if marginals.shape[1]:
+            out.append(WalkEvidence(marginals, classified, walk.floor))
+    return out
+
+
+def pair_shares(
+    evidence: Sequence[WalkEvidence],
+    weight: int,
+    classifier_weight: float,
+    floor_of_map: np.ndarray,
+    params: HmmParams,
+) -> list[float]:
+    """Return each joined pair's share of scans followed on a wrong floor.
+
+    The evidence is the radio map's under weight number ``weight`` plus
+    ``classifier_weight`` times the classifier's.
+    """
+    shares = []
+    truth = [e.floor for e in evidence]
+    for i, j in floor_pairs(truth):
+        a, b = evidence[i], evidence[j]
+        # e = ln mean L^w + c ln p(f | scan)
+        joined = np.concatenate(
+            [
+                a.marginals[weight] + classifier_weight * a.classified,
+                b.marginals[weight] + classifier_weight * b.classified,
+            ]
+        )
+        expected = np.repeat([a.floor, b.floor], [a.classified.shape[0], b.classified.shape[0]])
+        followed = floor_of_map[
+            floor_sequence(joined, params.floor_switch_prob, params.floor_switch_posterior)
+        ]
+        shares.append(float(np.mean(followed != expected)))
+    return shares
+
+
 def floor_pair_scores(
     model: EmissionModel, walks: Sequence[FloorWalk], weights: Sequence[float], params: HmmParams
 ) -> dict[float, list[float]]:
-    """Return, per floor weight, each joined pair's share of scans followed on a wrong floor.
+    """Return, per floor weight, each joined pair's share of scans on a wrong floor.
+
+    The radio map's evidence alone.
 
     Pairs are ``floor_pairs`` of the walks that have scans; empty lists when
     no two of them are on different floors.
     """
-    evidence, truth = [], []
-    for walk in walks:
-        e = walk_floor_evidence(model, walk.rssi, weights, params)
-        if e.shape[1]:
-            evidence.append(e)
-            truth.append(walk.floor)
+    evidence = walk_evidence(model, walks, weights, params)
     floor_of_map = np.asarray(model.floors, dtype=np.int64)
-    scores: dict[float, list[float]] = {float(w): [] for w in weights}
-    for i, j in floor_pairs(truth):
-        joined = np.concatenate([evidence[i], evidence[j]], axis=1)
-        expected = np.repeat([truth[i], truth[j]], [evidence[i].shape[1], evidence[j].shape[1]])
-        for k, w in enumerate(weights):
-            followed = floor_of_map[
-                floor_sequence(joined[k], params.floor_switch_prob, params.floor_switch_posterior)
-            ]
-            scores[float(w)].append(float(np.mean(followed != expected)))
-    return scores
+    return {
+        float(w): pair_shares(evidence, k, 0.0, floor_of_map, params) for k, w in enumerate(weights)
+    }

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from app.engine.hmm.floor_classifier import FloorClassifierParams
 from app.engine.scan_knn import ScanKnnParams
 from app.engine.scans import ScanParams
 
@@ -127,6 +128,13 @@ class HmmParams:
         on the positions both put on the right floor, a live mean 0.006 m
         and a fixed-lag mean 0.021 m higher. At 0.6 the tracks lost more
         (0.035 / 0.060 m).
+    floor_classifier_weight : float
+        Temper of the per-scan floor classifier's log-probabilities added to
+        each scan's floor evidence (``app.engine.hmm.floor_classifier``); 0
+        leaves floors to the radio map's evidence alone. A build chooses it
+        on held-out walks joined across floors.
+    floor_classifier : FloorClassifierParams
+        Constants of that classifier.
     relocate_margin : float
         Restart from k-NN when the best point of the floor explains the scan
         better than the predicted distribution by more than this (nats,
@@ -236,6 +244,8 @@ class HmmParams:
     unmapped_detect: float = 0.02
     floor_switch_prob: float = 1e-3
     floor_switch_posterior: float = 0.8
+    floor_classifier_weight: float = 0.0
+    floor_classifier: FloorClassifierParams = field(default_factory=FloorClassifierParams)
     relocate_margin: float = 10.0
     emit_every_ms: int = 1000
     imu_wait_ms: int = 100

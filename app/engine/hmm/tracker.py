@@ -300,6 +300,11 @@ class HmmTracker:
         rssi = rssi - self.rssi_offset
         ll = model.log_likelihoods(tx, rssi)
         marginal = model.floor_log_marginals(tx, rssi)
+        if p.floor_classifier_weight > 0:
+            # e_f = ln mean_j L_fj^w + c ln p(f | scan)
+            marginal = marginal + p.floor_classifier_weight * model.floor_classifier_log_probs(
+                tx, rssi
+            )
         self.floor_logp = floor_belief(self.floor_logp, marginal, p.floor_switch_prob)
         best = tracked_floor(self.map, self.floor_logp, p.floor_switch_posterior)
         if best != self.map:
