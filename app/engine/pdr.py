@@ -146,7 +146,7 @@ def _unit_zi(b: tuple[float, ...], a: tuple[float, ...]) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _butter(order: int, cutoff_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
-    """Design the filter once per setting: scipy takes 0.3 ms, and every new device needs it."""
+    """Design the filter once per setting: the design is costly, and every new device needs it."""
     b, a = signal.butter(order, cutoff_hz, fs=fs)
     b, a = np.asarray(b), np.asarray(a)
     # shared by every detector: read-only

@@ -7,6 +7,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 from sqlalchemy import text
 
+from app import __version__
 from app.core.errors import Unavailable
 from app.state import StateDep
 
@@ -17,13 +18,14 @@ class Health(BaseModel):
     """A health answer."""
 
     status: str
+    version: str = __version__
     database: bool | None = None
     workers: bool | None = None
 
 
 @router.get("/healthz", response_model=Health)
 def healthz() -> Health:
-    """Answer while the process serves requests (no key needed)."""
+    """Answer while the process serves requests (no key needed), with Locus's version."""
     return Health(status="ok")
 
 
