@@ -18,15 +18,20 @@ class Health(BaseModel):
     """A health answer."""
 
     status: str
-    version: str = __version__
     database: bool | None = None
     workers: bool | None = None
 
 
-@router.get("/healthz", response_model=Health)
-def healthz() -> Health:
+class Alive(Health):
+    """The liveness answer, with the installed package's version (pyproject.toml's)."""
+
+    version: str = __version__
+
+
+@router.get("/healthz", response_model=Alive)
+def healthz() -> Alive:
     """Answer while the process serves requests (no key needed), with Locus's version."""
-    return Health(status="ok")
+    return Alive(status="ok")
 
 
 @router.get("/readyz", response_model=Health)
