@@ -22,7 +22,7 @@ from app.engine.trackfit.step import advance
 
 @dataclass(frozen=True)
 class TrackFitParams:
-    """Tunable constants of the track fitter (defaults from seed 004).
+    """Tunable constants of the track fitter (defaults from Voronov et al.).
 
     Attributes
     ----------
