@@ -1,4 +1,4 @@
-"""Seed 001's claim in simulation: RMS of the UWB + inertial EKF against the raw fixes.
+"""Brovko's claim in simulation: RMS of the UWB + inertial EKF against the raw fixes.
 
 A walker at 1.2 m/s turns at a random constant rate (±0.4 rad/s) for 5 s at a
 time, for 120 s. UWB fixes arrive at 10 Hz with σ = 0.3 m per axis; the gyro

@@ -35,7 +35,7 @@ import cProfile  # noqa: E402
 import pstats  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
-from typing import Literal  # noqa: E402
+from typing import Any, Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -50,6 +50,7 @@ from app.engine.plan import FloorPlan, burn_segments  # noqa: E402
 from app.engine.positioning import PositioningEngine, PositioningParams  # noqa: E402
 from app.engine.samples import Batch, RssiReadings  # noqa: E402
 from app.engine.site import Emitters, Floor, SiteModel  # noqa: E402
+from app.evaluation.markdown import markdown_table  # noqa: E402
 
 WIDTH_M, HEIGHT_M, CELL_M = 120.0, 80.0, 0.25
 STEP_M = 0.7
@@ -218,6 +219,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--warmup", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--quick", action="store_true", help="3 updates to warm up, 5 timed")
+    parser.add_argument("--markdown", action="store_true", help="print Markdown tables")
     args = parser.parse_args(argv)
     if args.quick:
         args.warmup, args.repeats = 3, 5
@@ -237,6 +239,9 @@ def main(argv: list[str] | None = None) -> None:
     ):
         n = args.particles
         print(f"{title}: CPU µs per device update, N = {n}, median of {args.repeats}")
+        if args.markdown:
+            print(markdown_rows(site, fn, counts, heard, args) + "\n")
+            continue
         print(f"{'':>14s}" + "".join(f"{f'{m} tx':>24s}" for m in heard))
         print(f"{'devices/batch':>14s}" + f"{'numpy':>9s}{'numba':>8s}{'ratio':>7s}" * len(heard))
         for d in counts:
@@ -245,6 +250,18 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{d:>14d}" + row)
         print()
     print(f"load average at end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+
+
+def markdown_rows(
+    site: Any, fn: Any, counts: tuple[int, ...], heard: tuple[int, ...], args: Any
+) -> str:
+    """Return one timing table as Markdown: a numpy and a numba column per transmitter count."""
+    header = ["devices per batch"] + [f"{m} tx {k}" for m in heard for k in ("numpy", "numba")]
+    rows = []
+    for d in counts:
+        cells = [fn(site, d, m, args.warmup, args.repeats, args.particles) for m in heard]
+        rows.append([d] + [f"{c[k]:.0f}" for c in cells for k in ("numpy", "numba")])
+    return markdown_table(header, rows)
 
 
 def ratio(cell: dict[str, float]) -> float:

@@ -93,7 +93,7 @@ class Settings(BaseSettings):
         "per-request check for a configured provider.",
     )
 
-    # Ingest limits (API.md: 1 MiB body, 10,000 samples).
+    # Ingest limits (docs/api.md: 1 MiB body, 10,000 samples).
     max_body_bytes: int = Field(
         default=MIB, ge=1, le=1024 * MIB, description="Largest ingest body (bytes)."
     )

@@ -133,7 +133,7 @@ class ProcessingFailed(DomainError):
 
 
 def error_body(code: str, message: str, details: list[Any] | None = None) -> dict[str, Any]:
-    """Return the JSON error object of API.md."""
+    """Return the JSON error object of docs/api.md."""
     return {"error": {"code": code, "message": message, "details": details or []}}
 
 

@@ -12,11 +12,10 @@ from collections.abc import Callable
 GC_THRESHOLDS = (50_000, 20, 10)
 """The cyclic collector's thresholds in a running process: a young collection after 50,000
 new container objects instead of Python's 700. The API validates and forwards thousands of
-samples a second, each a few objects, all freed by reference counting. At Python's
-thresholds the API of a server carrying 5,000 devices' bulk bodies for 20 s (its whole run
-some 50 s) spent 13.6 s in 9,773 collections, up to 251 ms each, and carried 2,890
-updates/s; at these, 3.6 s in 96 collections, and 4,700 updates/s. Objects in reference
-cycles wait longer to be freed, never unboundedly."""
+samples a second, each a few objects, all freed by reference counting: at Python's
+thresholds it spends much of its time in collections that free nothing, and carries fewer
+updates (``bench/load.py`` at thousands of devices shows it). Objects in reference cycles
+wait longer to be freed, never unboundedly."""
 
 
 def settle_heap() -> None:
@@ -25,9 +24,8 @@ def settle_heap() -> None:
 
     A process that has started holds hundreds of thousands of long-lived objects (the app
     alone 200,000; its modules, sites and caches), and each full collection walked them
-    all: under load at 400 devices the API paused a median 139-225 ms per full pass,
-    which lands in the latency tail. Frozen, they are never scanned again; what is
-    created later is collected as usual.
+    all: a pause under load long enough to land in the latency tail. Frozen, they are
+    never scanned again; what is created later is collected as usual.
     """
     gc.collect()
     gc.freeze()
@@ -63,9 +61,8 @@ def limit_arenas(count: int) -> bool:
     Call it before a second thread allocates: glibc fixes the limit when a thread first
     needs an arena of its own. The API runs one event loop, but reads the database and
     checks keys in a pool of threads, each of which glibc gives an arena of its own, and
-    pages freed in one arena serve no other. In 30-minute soaks at 1,660 devices the
-    API's resident memory grew by 4.9 MB/hour over the second half with glibc's default
-    (one run) and by 2.0 and 2.1 MB/hour with two arenas (two runs).
+    pages freed in one arena serve no other, so the API's resident memory creeps up with
+    many arenas (``python -m bench.soak`` follows its trend over a long run).
     """
     if _MALLOPT is None or count <= 0:
         return False
@@ -79,10 +76,8 @@ def map_large_allocations(threshold: int) -> bool:
     glibc starts at 128 KiB but raises its threshold to the size of each mapped block
     freed (up to 32 MiB), so after a worker's first rounds its large transient arrays
     came from the heap, and the small long-lived chunks placed above them kept the heap
-    growing: under 900 devices at 1 Hz the two workers' heaps grew from 64.2 and 64.5 MB
-    to as much as 83.8 and 91.0 MB in 12 minutes while the bytes in use held at 60.4 to
-    61.0 MB. Fixed at 128 KiB (setting it at all stops the raising), they held at 60.3
-    to 61.1 MB.
+    growing while the bytes in use held steady. Setting the threshold at all stops the
+    raising, and the heap stays flat (``python -m bench.soak`` follows the workers' memory).
     """
     if _MALLOPT is None or threshold <= 0:
         return False
@@ -94,8 +89,8 @@ def trim_allocator() -> bool:
 
     glibc keeps the pages of freed chunks mapped and resident: a process whose
     requests allocate and free arrays, SQLite pages and buffers of many sizes
-    holds ever more of them. Under 1,235 devices at 1 Hz a worker that never
-    trimmed held 400-424 MB and grew; trimmed every minute, 292-302 MB, flat.
+    holds ever more of them. A worker that never trims grows under steady load;
+    trimmed now and then it stays flat (``python -m bench.soak``).
     """
     if _TRIM is None:
         return False

@@ -1,6 +1,6 @@
 """A-priori accuracy of a beacon or anchor layout over a floor, before anyone measures.
 
-Seed 003's use of ``D = (Hᵀ Q⁻¹ H)⁻¹``: at every cell centre of a grid at
+Grinyak's (2020) use of ``D = (Hᵀ Q⁻¹ H)⁻¹``: at every cell centre of a grid at
 height z, the standard deviations a least-squares fix would have from the
 emitters of a floor with ``samples`` readings each, and the condition number
 of the linearised problem. Where the 3-D problem is rank deficient (the cell

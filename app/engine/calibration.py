@@ -1,7 +1,7 @@
 """Transmitter calibration from survey walks: floor, position and path loss of each transmitter.
 
 Every transmitter heard in the located survey scans gets the log-distance
-model ``rssi = A - B ln r`` (seed 000's form) fitted by robust least squares,
+model ``rssi = A - B ln r`` (the form of Eurasian patent 047000) fitted by robust least squares,
 with ``r`` the 3-D distance from the transmitter, at a nominal height on its
 floor, to the phone in the walker's hand. Where the map gives no position,
 x and y are fitted too. Three things bias a naive fit and are modelled:

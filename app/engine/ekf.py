@@ -1,4 +1,4 @@
-"""Extended Kalman filter of position fixes and gyro yaw rate (seed 001).
+"""Extended Kalman filter of position fixes and gyro yaw rate (Brovko's UWB + inertial EKF report).
 
 State ``x = [x, y, V, α]``: position (m), speed (m/s) and course α (rad,
 counter-clockwise from +x). The report's process model (its eqs. 3–9)::
@@ -46,7 +46,7 @@ from app.engine.samples import Batch
 from app.engine.site import SiteModel
 
 POSITION_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
-"""Observation matrix of a position fix (seed 001, eq. 12)."""
+"""Observation matrix of a position fix (Brovko's EKF report, eq. 12)."""
 
 
 @dataclass(frozen=True)
@@ -120,7 +120,7 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray:
 
 
 def propagate(x: np.ndarray, dt: float, yaw_rate: float, mu: float) -> np.ndarray:
-    """Return the state extrapolated by ``dt`` seconds (seed 001, eqs. 3 and 7), shape (4,)."""
+    """Return the state extrapolated by ``dt`` seconds (Brovko, eqs. 3 and 7), shape (4,)."""
     px, py, v, a = x
     return np.array(
         [
@@ -136,7 +136,7 @@ def propagate(x: np.ndarray, dt: float, yaw_rate: float, mu: float) -> np.ndarra
 
 
 def process_jacobian(x: np.ndarray, dt: float, mu: float) -> np.ndarray:
-    """Return ∂f/∂x at ``x`` (seed 001, eq. 9), shape (4, 4)."""
+    """Return ∂f/∂x at ``x`` (Brovko's EKF report, eq. 9), shape (4, 4)."""
     _, _, v, a = x
     c, s = np.cos(a), np.sin(a)
     return np.array(
@@ -160,7 +160,7 @@ def process_noise(
 def ekf_predict(
     x: np.ndarray, P: np.ndarray, dt: float, yaw_rate: float, Q: np.ndarray, mu: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Extrapolate state and covariance by ``dt`` seconds (seed 001, eqs. 7–8)."""
+    """Extrapolate state and covariance by ``dt`` seconds (Brovko's EKF report, eqs. 7–8)."""
     F = process_jacobian(x, dt, mu)
     x_new = propagate(x, dt, yaw_rate, mu)
     x_new[3] = wrap_angle(x_new[3])

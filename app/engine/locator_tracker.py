@@ -37,7 +37,7 @@ class LocatorTrackerParams:
     default_A, default_B, default_sigma : float
         Path loss ``rssi = A − B ln r`` (dBm, dB per ln m, dB) of locators
         whose table has no fitted values: a typical BLE tag, free-space
-        exponent, seed 003's 5 dB.
+        exponent, Grinyak's (2020) 5 dB.
     max_samples : int
         Readings counted per locator and window at most: RSSI readings a few
         hundred milliseconds apart share their fading, so σ/√M with the full

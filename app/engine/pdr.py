@@ -1,6 +1,6 @@
 """Pedestrian dead reckoning: steps (time, length, heading) from a phone's IMU stream.
 
-Step detection follows CN106028450 (seed 002): peaks of the low-passed
+Step detection follows CN106028450: peaks of the low-passed
 acceleration, keeping only the first peak within τ = 0.3 s. The magnitude of
 the acceleration replaces the patent's z axis so that detection does not
 depend on how the phone is held. Step length is Weinberg's
@@ -58,7 +58,7 @@ class PdrParams:
         calibrated on the ILC site1 training walks (``app.evaluation.pdr_eval``:
         total waypoint distance over total swing^(1/4)).
     step_length_std : float
-        σ_d of the step length (m), seed 002.
+        σ_d of the step length (m), CN106028450.
     heading_std_deg : float
         Standard deviation of a step's heading (degrees) for filters that move
         particles or states by steps: the median absolute heading error on ILC
@@ -146,7 +146,7 @@ def _unit_zi(b: tuple[float, ...], a: tuple[float, ...]) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _butter(order: int, cutoff_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
-    """Design the filter once per setting: scipy takes 0.3 ms, and every new device needs it."""
+    """Design the filter once per setting: the design is costly, and every new device needs it."""
     b, a = signal.butter(order, cutoff_hz, fs=fs)
     b, a = np.asarray(b), np.asarray(a)
     # shared by every detector: read-only

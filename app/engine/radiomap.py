@@ -1,4 +1,4 @@
-"""Fingerprint radio maps built from survey walks (CN106028450, seed 002, offline phase).
+"""Fingerprint radio maps built from survey walks (CN106028450, offline phase).
 
 A map holds, per reference point, each transmitter's RSSI mean, variance and
 detection rate. The patent samples a grid of reference points (cells of

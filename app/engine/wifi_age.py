@@ -12,8 +12,8 @@ the age nearest the default that is as good as the best walk by walk.
 
 On ILC site1's 457 training walks (five walk folds, every other held-out
 scan, mean of the walks' mean errors) the k-NN erred 6.774 m with readings
-up to 2 s old, 6.161 m at 5 s and 5.978 m at 8 s; a one-off run on two of
-those folds found 12 s worse than 6 s (7.29 m against 7.04 m).
+up to 2 s old, 6.161 m at 5 s and 5.978 m at 8 s. Longer ages than 8 s
+add readings heard too far back along the walk.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Weighted k-nearest-neighbour fingerprinting per WiFi scan, without tracking.
 
-The peer method of the HMM (seed 002 uses it for the initial position): the
+The peer method of the HMM (CN106028450 uses it for the initial position): the
 scan's RSSI vector is compared with every reference point's mean vector by
 Euclidean distance over the union of transmitters, a transmitter missing on
 either side counting as ``missing_dbm``; the k nearest points, weighted by

@@ -1,4 +1,4 @@
-"""Measure the track fitter (seed 004 with the hypothesis search) on ILC site1's held-out walks.
+"""Measure the track fitter (Voronov et al., plus hypothesis search) on site1's held-out walks.
 
 A fresh ``locus serve`` is surveyed with the training walks and builds its
 radio maps through the API (split by walk, never by sample; the build chooses

@@ -3,10 +3,10 @@
 Each batch of ``POST /v1/ingest/bulk`` is validated as the single ingest
 validates its body: from JSON, on pydantic's fast path. The envelope is cut
 with msgspec, which hands back every batch as the bytes the client sent
-(``msgspec.Raw``) and counts their samples without building them: on a body
-of 100 one-scan batches this takes 0.3 ms, where decoding the whole body
-with the json module and encoding each batch back took 2.8 ms (as much again
-as validating the batches). A body msgspec cannot read but the json module
+(``msgspec.Raw``) and counts their samples without building them, where
+decoding the whole body with the json module and encoding each batch back
+would cost as much again as validating the batches (``bench/load.py``'s
+``bulk`` mode measures it). A body msgspec cannot read but the json module
 can (``NaN`` literals, lone surrogate escapes), and every body refused as
 a whole, takes that slower road, so both roads accept and refuse the same
 bodies with the same errors.

@@ -5,9 +5,9 @@ server carries) is authenticated and handed to the route's endpoint here, as pla
 no exception middleware, no route matching, no dependency solving, no exit stacks. Besides
 the CPU, that is memory: a keep-alive connection keeps its last request's scope (under
 1,000 devices the framework's path kept 3,000 exit stacks alive between requests), and a
-request awaiting its positions keeps every frame it passed through. Under 1,000 devices
-the API held 2-7 MB less this way, and a 10-s stall left 6.7-7.4 MB of the allocator's
-arenas behind instead of 12.8-13.7 MB.
+request awaiting its positions keeps every frame it passed through, so the API holds less
+memory under many devices and leaves less of the allocator's arenas behind after a stall
+(``python -m bench.soak`` follows the API's memory).
 
 Every other request (another query, which FastAPI checks, or any other route) goes the
 framework's way; errors are rendered by the same function as its handlers'.

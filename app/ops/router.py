@@ -7,6 +7,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 from sqlalchemy import text
 
+from app import __version__
 from app.core.errors import Unavailable
 from app.state import StateDep
 
@@ -21,10 +22,16 @@ class Health(BaseModel):
     workers: bool | None = None
 
 
-@router.get("/healthz", response_model=Health)
-def healthz() -> Health:
-    """Answer while the process serves requests (no key needed)."""
-    return Health(status="ok")
+class Alive(Health):
+    """The liveness answer, with the installed package's version (pyproject.toml's)."""
+
+    version: str = __version__
+
+
+@router.get("/healthz", response_model=Alive)
+def healthz() -> Alive:
+    """Answer while the process serves requests (no key needed), with Locus's version."""
+    return Alive(status="ok")
 
 
 @router.get("/readyz", response_model=Health)

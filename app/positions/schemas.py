@@ -6,7 +6,7 @@ from pydantic import BaseModel, ConfigDict
 
 
 class Position(BaseModel):
-    """A position message (API.md, Positions)."""
+    """A position message (docs/api.md, Positions)."""
 
     model_config = ConfigDict(from_attributes=True)
 

@@ -95,9 +95,10 @@ def _points(times: list[int], xy: np.ndarray) -> list[dict[str, Any]]:
 def fit_in_pool(job: dict[str, Any]) -> dict[str, Any]:
     """Run one fit in a pool process, then return the allocator's free pages to the system.
 
-    A fit's arrays leave their pages with the allocator: after fits of 50 to
-    300 links on site1's largest floor a process held 181-232 MB, 150-152 MB
-    once trimmed, and the pool's processes live as long as the server.
+    A fit's arrays leave their pages with the allocator, and the pool's
+    processes live as long as the server: without the trim each fit would
+    leave tens of megabytes resident (``python -m bench.trackfit`` runs fits
+    of the same sizes).
     """
     try:
         return run_fit(job)

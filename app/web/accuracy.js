@@ -1,5 +1,5 @@
 // Accuracy planning overlay: the standard deviation a least-squares fix would have at
-// each cell of the floor (API.md, "Planning"), drawn as a heatmap under the plan.
+// each cell of the floor (docs/api.md, "Planning"), drawn as a heatmap under the plan.
 
 import { ApiError } from "./api.js";
 

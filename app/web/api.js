@@ -1,4 +1,4 @@
-// The Locus HTTP API as the dashboard uses it (see API.md): one key, JSON in and out,
+// The Locus HTTP API as the dashboard uses it (see docs/api.md): one key, JSON in and out,
 // errors turned into ApiError carrying the contract's {code, message, details}.
 
 const KEY_STORAGE = "locus.key";

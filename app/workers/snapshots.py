@@ -8,11 +8,10 @@ msgpack extension; object dtypes are refused both ways, never pickled.
 Versions 1 and 2 are still read, so devices stored before version 3 resume.
 Version 2 exists because a worker snapshots every device each
 ``snapshot_every_ms`` and at eviction: version 1's npz (flat ``/``-joined
-keys, each compressed on its own) cost 1.4-2.5 ms a snapshot, version 2
-about 0.2 ms, in 40% of the bytes (one fast zlib pass over the whole).
-Version 3 compresses the same msgpack with an LZ4 frame instead of zlib: the
-21 kB of a particle filter's snapshot in 15 µs instead of 98 µs, to 6.4 kB
-instead of 5.3 kB, and back in 6 µs instead of 32 µs (best of five timings).
+keys, each compressed on its own) cost several times more than version 2's
+one fast zlib pass over msgpack, in more bytes. Version 3 compresses the same
+msgpack with an LZ4 frame instead of zlib: several times faster both ways,
+for slightly more bytes (``python -m bench.snapshots`` times them).
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@ and workers will process the ingest it accepts."""
 
 from __future__ import annotations
 
+import importlib.metadata
 from pathlib import Path
 
 from fastapi.testclient import TestClient
@@ -37,3 +38,10 @@ def test_an_embedded_broker_without_workers_is_not_ready(database_url: str, tmp_
         body = {"device_id": "d", "site_id": "s", "wifi": [sample]}
         r = client.post("/v1/ingest", json=body, headers=ADMIN)
         assert r.status_code == 503 and r.json()["error"]["code"] == "unavailable"
+
+
+def test_healthz_reports_the_installed_package_version(client: TestClient) -> None:
+    r = client.get("/healthz")
+    assert r.status_code == 200
+    assert r.json()["version"] == importlib.metadata.version("locus")
+    assert client.get("/openapi.json").json()["info"]["version"] == r.json()["version"]

@@ -1,4 +1,4 @@
-"""The accuracy map endpoint: JSON grids per API.md, a PNG heatmap on request."""
+"""The accuracy map endpoint: JSON grids per docs/api.md, a PNG heatmap on request."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A-priori accuracy: seed 003's hall against Monte-Carlo least squares, closed forms, the grid."""
+"""A-priori accuracy: Grinyak's hall against Monte-Carlo least squares, closed forms, the grid."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from app.engine.lateration.solver import LaterationParams, solve
 from app.engine.plan import FloorPlan
 from app.engine.site import Emitters, Floor, SiteModel
 
-# Seed 003, Table 1: a 10 × 10 × 4 m hall; σ_u² = 25 dB², 50 readings per beacon.
+# Grinyak 2020, Table 1: a 10 × 10 × 4 m hall; σ_u² = 25 dB², 50 readings per beacon.
 SIGMA_DB = 5.0
 SAMPLES = 50
 # The paper does not print n; free space (n = 2) reproduces its numbers (see AccuracyParams).

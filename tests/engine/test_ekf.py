@@ -1,4 +1,4 @@
-"""Seed 001 EKF: process model, update, gating and start-up, and the simulated gain."""
+"""The UWB + inertial EKF (Brovko): process model, update, gating, start-up, simulated gain."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def test_headings_and_yaw_rate() -> None:
 @pytest.mark.parametrize(("gyro", "limit"), [(True, 1 / 3), (False, 1 / 2)])
 def test_filter_beats_raw_fixes_in_simulation(gyro: bool, limit: float) -> None:
     """Fixes at 10 Hz with σ = 0.3 m: RMS at most 1/3 of the fixes' with a gyro
-    (seed 001 claims about 1/5), 1/2 with the course from motion alone."""
+    (Brovko's report claims about 1/5), 1/2 with the course from motion alone."""
     t, xy, rate = turning_walk(seed=5)
     rng = np.random.default_rng(6)
     idx = np.arange(0, t.size, 5)

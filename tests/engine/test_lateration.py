@@ -60,7 +60,7 @@ def test_range_covariance_matches_the_hand_worked_cross() -> None:
 
 def test_rssi_fix_and_covariance_match_the_closed_form() -> None:
     # rssi = A − B ln d; H rows −B (p − e)/d²: for the same cross, σx = σ d / (B √2) per reading,
-    # and M readings divide the variance by M (seed 003)
+    # and M readings divide the variance by M (Grinyak 2020)
     p = np.array([5.0, 5.0, 1.5])
     d = 3.0
     tx = p + np.array([[d, 0, 0], [-d, 0, 0], [0, d, 0], [0, -d, 0]])
@@ -167,7 +167,7 @@ def test_rank_and_condition_checks() -> None:
     assert cond[0] == pytest.approx(2.0)
     assert rank.tolist() == [2, 1]
     assert np.isinf(cond[1]) and np.isnan(cov[1]).all()
-    # μ* of seed 003: about 10¹³ for u = 6 in double precision
+    # μ* of Grinyak 2020: about 10¹³ for u = 6 in double precision
     assert 1e12 < critical_condition(6) < 1e14
     u = 3
     assert critical_condition(u, 1e-16) == pytest.approx(

@@ -1,4 +1,4 @@
-"""Track-to-plan fitting by dynamic programming (seed 004).
+"""Track-to-plan fitting by dynamic programming (Voronov et al.).
 
 References: a second, loop-by-loop implementation of the paper's forward and
 backward passes using only ``FloorPlan.is_free`` sampled along each link;

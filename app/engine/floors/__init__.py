@@ -5,7 +5,7 @@ configuration names one (``FloorParams.method``, ``selection.floor_selector_clas
 
 - ``forward``: the engine's default, a forward filter over floors (a hidden
   Markov model whose state is the floor) on the evidence of ``evidence``;
-- ``patent``: the floor selection of seed 000 (Eurasian patent 047000), the
+- ``patent``: the floor selection of Eurasian patent 047000, the
   E_L ranking, with hysteresis added.
 
 Both read a barometer's climb (``pressure``), take one ``window.FloorWindow``

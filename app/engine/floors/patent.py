@@ -1,4 +1,4 @@
-"""The floor selection of seed 000 (Eurasian patent 047000): E_L ranking with hysteresis.
+"""The floor selection of Eurasian patent 047000: E_L ranking with hysteresis.
 
 Per floor L over the last N seconds the selector accumulates the number n of
 readings from transmitters on L, their summed RSSI and their summed A, and

@@ -1,4 +1,4 @@
-"""WiFi fingerprint + inertial hidden Markov model (CN106028450, seed 002, online phase).
+"""WiFi fingerprint + inertial hidden Markov model (CN106028450, online phase).
 
 The hidden state is the reference point the phone is at; its distribution over
 one floor's reference points is carried from scan to scan:

@@ -1,4 +1,4 @@
-"""Tunable constants of the fingerprint + inertial HMM (seed 002)."""
+"""Tunable constants of the fingerprint + inertial HMM (CN106028450)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""One device's HMM: PDR steps and WiFi scans in, positions and floor out (seed 002)."""
+"""One device's HMM: PDR steps and WiFi scans in, positions and floor out (CN106028450)."""
 
 from __future__ import annotations
 

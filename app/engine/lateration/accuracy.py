@@ -1,4 +1,4 @@
-"""Seed 003's measurement model and the checks that give a fix's accuracy before it is measured.
+"""Grinyak's (2020) measurement model, and the checks that give a fix's accuracy in advance.
 
 The readings are ranges ``h = d`` (UWB) or path loss ``h = A - B ln d`` (RSSI):
 the paper's ``u = u* - 10 n log10(d / d*)`` with ``d* = 1 m``, ``A = u*`` and
@@ -66,7 +66,7 @@ def predict(
         raise ValueError("the rssi model needs A and B")
     # h = A − B ln d
     h = A[None, :] - B[None, :] * np.log(d)
-    # ∂h/∂p = −B (p − e) / d²  (seed 003 eq. 3 with B = 10 n / ln 10)
+    # ∂h/∂p = −B (p − e) / d²  (Grinyak 2020, eq. 3 with B = 10 n / ln 10)
     return h, -B[None, :, None] * diff / (d * d)[..., None]
 
 
@@ -144,7 +144,7 @@ def covariance_checks(Hw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 def critical_condition(n_unknowns: int, eps: float = float(np.finfo(float).eps)) -> float:
     """Return the paper's critical condition number μ* for ``n_unknowns`` unknowns.
 
-    μ* = 1 / ([√u (2u - 3)(4u + 27) + 11] ε₁) (seed 003, after Kryzhko &
+    μ* = 1 / ([√u (2u - 3)(4u + 27) + 11] ε₁) (Grinyak 2020, after Kryzhko &
     Glushakova): about 2·10¹³ for u = 3 in double precision.
     """
     u = float(n_unknowns)

@@ -1,6 +1,6 @@
-"""Robust Gauss–Newton position fixes from UWB ranges or RSSI (seed 003).
+"""Robust Gauss–Newton position fixes from UWB ranges or RSSI (Grinyak 2020).
 
-Seed 003 (Grinyak 2020) linearises the measurement equations around a
+Grinyak (2020) linearises the measurement equations around a
 reference solution and solves them by Gauss–Newton; the fix is then checked
 for observability, stability and accuracy (``accuracy``).
 

@@ -1,4 +1,4 @@
-"""Particle filter of seed 000 (Eurasian patent 047000, steps 1–11), batched over many filters.
+"""Particle filter of Eurasian patent 047000 (steps 1–11), batched over many filters.
 
 Each floor a device may be on has its own filter: N particles (x, y, w, α)
 with α the particle's walking direction (radians clockwise from +y). One

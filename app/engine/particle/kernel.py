@@ -6,8 +6,8 @@ reference) with the same signature and, by construction, the same result
 order): the loops do the twin's float32 and float64 arithmetic in the same
 order, and every transcendental (sin, cos, exp) is still taken by
 numpy's vectorised ufuncs between the loops. numba's scalar libm calls
-differ from numpy's SIMD loops in the last bit for 4-40% of float32 inputs
-and cost 5-70 times more; a last-bit difference in a particle's position
+differ from numpy's SIMD loops in the last bit for some float32 inputs
+and cost many times more; a last-bit difference in a particle's position
 decides, now and then, which cell or side of a wall it is on, and
 resampling turns that into a different track. What stays numpy is a few
 passes over contiguous rows; what is compiled is what numpy does badly:

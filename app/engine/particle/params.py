@@ -40,7 +40,7 @@ class ParticleFilterParams:
         1 / Σ w² falls below N_r.
     step_length_std_m : float
         Standard deviation (m) of a step's length per particle: σ_d of the
-        dead-reckoning patent (seed 002).
+        dead-reckoning patent (CN106028450).
     heading_std_deg : float
         Standard deviation (deg) of a step's heading per particle: the
         dead-reckoning heading error measured on ILC site1 (``PdrParams``).

@@ -1,4 +1,4 @@
-"""Fit a dead-reckoned track to the floor plan by dynamic programming (seed 004).
+"""Fit a dead-reckoned track to the floor plan by dynamic programming (Voronov et al.).
 
 A device in energy-saving mode uploads its own dead-reckoned track as links:
 a length l_i and the turn from the previous link. Step lengths are off by up

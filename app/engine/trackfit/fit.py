@@ -22,7 +22,7 @@ from app.engine.trackfit.step import advance
 
 @dataclass(frozen=True)
 class TrackFitParams:
-    """Tunable constants of the track fitter (defaults from seed 004).
+    """Tunable constants of the track fitter (defaults from Voronov et al.).
 
     Attributes
     ----------
@@ -100,9 +100,9 @@ class TrackFitParams:
         keeps all, the paper's programme). On long tracks in large open
         floors the cells alive grow with the area the track could have
         reached, while the tracks far behind the best are those that bent it
-        most: cutting them bounds a link's cost. A 500-step walk on site1's
-        largest floor (``bench/trackfit.py``) kept up to 1,496 per hypothesis
-        without the bound and took 8.3 s; with 150, 2.2 s at the same error.
+        most: cutting them bounds a link's cost without changing the error
+        (``bench/trackfit.py`` measures the time and error of long walks on
+        site1's largest floor).
     time_limit_s : float
         The forward pass gives up (``failed``) after this much computing time (s).
     """

@@ -1,6 +1,6 @@
 """One link of the track fitter's dynamic programme: extend every track, keep the best per cell.
 
-Seed 004 keeps, for every link i and cell s, only the best track of the first
+Voronov et al.'s programme keeps, for every link i and cell s, only the best track of the first
 i links ending in s. ``advance`` adds link i to every surviving track with
 each candidate length and turn, drops the candidates that end on or cross a
 wall, and keeps the least-score one per destination cell.

@@ -1,8 +1,8 @@
 """The positioning methods compared on site1, built from what was learned, ready to replay walks.
 
 - ``wknn``: WKNN per WiFi scan on the radio maps, no tracking (the peer baseline);
-- ``hmm``: the fingerprint + inertial HMM of seed 002 over the same maps, fed by PDR;
-- ``pf``: the particle filter of seed 000 (floor selection, PDR steps, map
+- ``hmm``: the fingerprint + inertial HMM of CN106028450 over the same maps, fed by PDR;
+- ``pf``: the particle filter of Eurasian patent 047000 (floor selection, PDR steps, map
   constraint) through ``PositioningEngine`` with the server's default
   parameters, on the transmitters calibrated by ``app.engine.calibration``,
   as on a site without radio maps: floors are chosen on the transmitter

@@ -63,6 +63,7 @@ from app.evaluation.ilc.score import (
     summarise,
 )
 from app.evaluation.ilc.table import COLUMNS, table_cells
+from app.evaluation.markdown import markdown_table
 from app.evaluation.split import split_ids, walk_unit
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
@@ -296,6 +297,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "of the walking direction (a phone carried turned)",
     )
     parser.add_argument("--save", type=Path, help="write the positions and summary as JSON")
+    parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     parser.add_argument("--plots", type=Path, help="folder for PNGs of a few walks' stages")
     parser.add_argument("--n-plots", type=int, default=4, help="walks plotted (evenly spread)")
     return parser.parse_args(argv)
@@ -395,17 +397,23 @@ def main(argv: Sequence[str] | None = None) -> None:
     console.print(f"build accuracy: {run.build.get('accuracy')}")
     label = f"server ({args.wifi_times}{', defaults' if args.no_tuning else ''})"
     row = summarise(label, run.scores, 0.0, 0)
-    table = Table(title=f"ILC site1 through locus serve, {len(held)} held-out walks")
-    for i, col in enumerate(COLUMNS):
-        table.add_column(col, justify="left" if i == 0 else "right", no_wrap=i == 0)
+    rows = []
     if run.stages is not None:
-        for stage in run.stages.rows():
-            table.add_row(*table_cells(replace(stage, method=f"in process: {stage.method}")))
-    table.add_row(*table_cells(row))
+        stages = run.stages.rows()
+        rows += [table_cells(replace(s, method=f"in process: {s.method}")) for s in stages]
+    rows.append(table_cells(row))
     with console.status("per-scan k-NN on the same split"):
         baseline = scan_knn_scores(floors, train_walks, held)
-    table.add_row(*table_cells(summarise("per-scan k-NN (same surveys)", baseline, 0.0, 0)))
-    console.print(table)
+    rows.append(table_cells(summarise("per-scan k-NN (same surveys)", baseline, 0.0, 0)))
+    if args.markdown:
+        print(markdown_table(COLUMNS, rows))
+    else:
+        table = Table(title=f"ILC site1 through locus serve, {len(held)} held-out walks")
+        for i, col in enumerate(COLUMNS):
+            table.add_column(col, justify="left" if i == 0 else "right", no_wrap=i == 0)
+        for cells in rows:
+            table.add_row(*cells)
+        console.print(table)
     console.print(f"replay wall time {run.wall_s:.0f} s")
     if args.plots and run.stages is not None:
         _plot_stages(args.plots, site_dir, floors, held, run.stages)
