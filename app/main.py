@@ -24,6 +24,7 @@ from app.ingest.direct import DirectIngest
 from app.ingest.router import router as ingest_router
 from app.keys.router import router as keys_router
 from app.ops.router import router as ops_router
+from app.outputs.router import router as outputs_router
 from app.planning.router import router as planning_router
 from app.positions.router import router as positions_router
 from app.radiomaps.router import router as radiomaps_router
@@ -115,6 +116,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         radiomaps_router,
         tracks_router,
         planning_router,
+        outputs_router,
     ):
         app.include_router(router)
     if WEB_DIR.is_dir():

@@ -4,6 +4,7 @@ from app.core.db import Base
 from app.devices.models import Device, DeviceStateRecord
 from app.floors.models import FloorRecord
 from app.keys.models import ApiKey
+from app.outputs.models import OutboxRow, Output
 from app.positions.models import PositionRecord
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.sites.models import Site
@@ -17,6 +18,8 @@ __all__ = [
     "Device",
     "DeviceStateRecord",
     "FloorRecord",
+    "OutboxRow",
+    "Output",
     "PositionRecord",
     "RadioMapBuild",
     "RadioMapFloor",

@@ -23,6 +23,7 @@ from app.core.heap import trim_allocator
 from app.core.metrics import Metrics
 from app.keys.cache import KeyCache
 from app.keys.revocation import Revocations
+from app.outputs.dispatcher import Dispatcher
 from app.radiomaps.jobs import RadioMapBuilds
 from app.sites.cache import SiteVersions
 from app.tracks.jobs import TrackFitter
@@ -45,6 +46,7 @@ class AppState:
     track_fits: TrackFitter
     radiomap_builds: RadioMapBuilds
     revocations: Revocations
+    outputs: Dispatcher
     job_leases: asyncio.Task[None] | None = None
     revocation_poll: asyncio.Task[None] | None = None
     heap_trims: asyncio.Task[None] | None = None
@@ -79,7 +81,9 @@ class AppState:
             track_fits=track_fits,
             radiomap_builds=RadioMapBuilds(settings, sessions, sites),
             revocations=Revocations(sessions, keys, settings.key_revocation_poll_s),
+            outputs=Dispatcher(settings, sessions, metrics),
         )
+        state.outputs.start()
         await state.tend_jobs()
         state.job_leases = asyncio.create_task(state._keep_jobs())
         state.revocation_poll = asyncio.create_task(state.revocations.run())
@@ -115,6 +119,7 @@ class AppState:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+        await self.outputs.stop()
         self.track_fits.stop()
         if self.runtime is not None:
             await self.runtime.stop()

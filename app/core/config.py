@@ -314,6 +314,69 @@ class Settings(BaseSettings):
         "and outside before its exit (each reported at the crossing's time), so a filter's "
         "jitter at a doorway does not flicker; 0 reports every crossing.",
     )
+    zone_exit_tolerance: float = Field(
+        default=1.0,
+        ge=0,
+        le=10,
+        description="A position outside a zone the device is in, by less than this multiple "
+        "of its accuracy radius, still counts as inside: the filter's error is not a step "
+        "out (0: the zone's edge alone decides).",
+    )
+    output_refresh_s: float = Field(
+        default=2.0,
+        gt=0,
+        le=300,
+        description="Workers read a site's outputs again after this: a new output gets what "
+        "is stored from at most this long after it was created.",
+    )
+    output_poll_s: float = Field(
+        default=0.05,
+        gt=0,
+        le=60,
+        description="How often an idle output's dispatcher looks for new messages.",
+    )
+    output_lease_s: float = Field(
+        default=10.0,
+        gt=0,
+        le=600,
+        description="An API node delivers an output under a lease it renews every third of "
+        "this; another node takes the output over once the lease runs out.",
+    )
+    output_batch_max: int = Field(
+        default=500,
+        ge=1,
+        le=10_000,
+        description="Most messages an output's dispatcher reads and sends in one go.",
+    )
+    output_rate_limit: float = Field(
+        default=5000,
+        gt=0,
+        le=100_000,
+        description="Messages per second an output is sent at most, unless it sets its own.",
+    )
+    output_retry_base_s: float = Field(
+        default=0.5,
+        gt=0,
+        le=60,
+        description="First delay before a failed delivery is tried again; each further "
+        "failure doubles it (with jitter) up to output_retry_max_s.",
+    )
+    output_retry_max_s: float = Field(
+        default=30.0, gt=0, le=3600, description="Longest delay between delivery attempts."
+    )
+    output_retention_s: float = Field(
+        default=86_400,
+        gt=0,
+        le=30 * 86_400,
+        description="A message not delivered this long after it was stored is given up: "
+        "counted failed in /metrics and on the output's status.",
+    )
+    output_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        le=300,
+        description="Longest wait for a webhook's answer or a broker's acknowledgement.",
+    )
     raster_cell: float = Field(default=0.25, gt=0, le=10, description="Floor raster cell (m).")
     warm_sites: bool = Field(
         default=True,

@@ -72,6 +72,23 @@ class Metrics:
             "locus_ws_dropped_messages", "Messages dropped for slow subscribers", registry=r
         )
 
+        out = ["site_id", "output_id"]
+        self.output_delivered = Counter(
+            "locus_output_delivered", "Messages an output acknowledged", out, registry=r
+        )
+        self.output_retried = Counter(
+            "locus_output_retried",
+            "Messages whose delivery attempt failed and waits",
+            out,
+            registry=r,
+        )
+        self.output_failed = Counter(
+            "locus_output_failed", "Messages given up after the retention bound", out, registry=r
+        )
+        self.output_pending = Gauge(
+            "locus_output_pending", "Messages waiting for an output", out, registry=r
+        )
+
     def count_drops(self, drops: list[dict[str, Any]]) -> None:
         """Count the samples or fields the per-sample policy dropped, by kind and reason."""
         for drop in drops:

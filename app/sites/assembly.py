@@ -48,6 +48,13 @@ class Zone:
         x0, y0, x1, y1 = self.bounds
         return x0 <= x <= x1 and y0 <= y <= y1 and bool(shapely.contains_xy(self.polygon, x, y))
 
+    def near(self, x: float, y: float, radius: float) -> bool:
+        """Return whether (x, y) lies within ``radius`` (m) of the zone."""
+        x0, y0, x1, y1 = self.bounds
+        if not (x0 - radius <= x <= x1 + radius and y0 - radius <= y <= y1 + radius):
+            return False
+        return bool(shapely.dwithin(self.polygon, shapely.Point(x, y), radius))
+
 
 @dataclass(frozen=True, eq=False)
 class LoadedSite:

@@ -7,6 +7,7 @@ from sqlalchemy.orm import Session
 
 from app.core.errors import NotFound
 from app.devices.models import Device, DeviceStateRecord
+from app.outputs.models import OutboxRow
 from app.positions.models import PositionRecord
 from app.sites.models import Site
 from app.sites.schemas import SiteUpsert
@@ -48,10 +49,12 @@ def list_sites(*, db: Session, only: str | None, limit: int, offset: int) -> tup
 
 
 def delete_site(*, db: Session, site: Site) -> None:
-    """Delete the site with its floors, surveys, devices, positions and device states."""
+    """Delete the site with its floors, surveys, devices, positions, device states, outputs
+    and their outbox."""
     db.execute(delete(PositionRecord).where(PositionRecord.site_id == site.id))
     db.execute(delete(DeviceStateRecord).where(DeviceStateRecord.site_id == site.id))
     db.execute(delete(Device).where(Device.site_id == site.id))
+    db.execute(delete(OutboxRow).where(OutboxRow.site_id == site.id))
     db.delete(site)
     db.flush()
 

@@ -123,7 +123,13 @@ class DeviceSession:
     """
 
     def __init__(
-        self, *, device_id: str, engines: SiteEngines, now: int, zone_dwell_ms: int = 0
+        self,
+        *,
+        device_id: str,
+        engines: SiteEngines,
+        now: int,
+        zone_dwell_ms: int = 0,
+        zone_exit_tolerance: float = 0.0,
     ) -> None:
         self.device_id = device_id
         self.engines = engines
@@ -132,6 +138,9 @@ class DeviceSession:
         self.processed_wifi_t = -1
         self.max_t = -1
         self.zones = ZoneTracker(zone_dwell_ms)
+        self.zone_exit_tolerance = zone_exit_tolerance
+        """Multiple of a position's accuracy radius within which a position just outside a
+        zone the device is in still counts as inside (the filter's error, not a step out)."""
         self.buffer: list[tuple[int, str, Sample]] = []
         self.seen: dict[int, int] = {}
         """The identity of each buffered sample, and its time."""
@@ -273,26 +282,51 @@ class DeviceSession:
         return positions, events
 
     def _zone_events(self, estimate: Estimate) -> list[ZoneEvent]:
-        """Return the enter/exit events this estimate confirms, each at its crossing time."""
+        """Return the enter/exit events this estimate confirms, each at its crossing time.
+
+        Each event carries the position that confirmed it and the zones the
+        device is in once it has happened (``zones``).
+        """
         if not self.site.zones and not self.zones.inside:
             return []
+        margin = self.zone_exit_tolerance * estimate.accuracy
         inside = frozenset(
             z.name
             for z in self.site.zones
-            if z.floor == estimate.floor and z.contains(estimate.x, estimate.y)
+            if z.floor == estimate.floor
+            and (
+                z.contains(estimate.x, estimate.y)
+                or (
+                    margin > 0
+                    and z.name in self.zones.inside
+                    and z.near(estimate.x, estimate.y, margin)
+                )
+            )
         )
-        return [
-            {
-                "type": "zone",
-                "event": event,
-                "zone": name,
-                "device_id": self.device_id,
-                "site_id": self.site.site_id,
-                "floor_id": self.site.floor_ids[estimate.floor],
-                "t": t,
-            }
-            for event, name, t in self.zones.update(int(estimate.t), inside)
-        ]
+        changes = self.zones.update(int(estimate.t), inside)
+        if not changes:
+            return []
+        # the zones after each change, replayed from before this estimate's changes
+        now_in = set(self.zones.inside.symmetric_difference(name for _, name, _ in changes))
+        events = []
+        for event, name, t in changes:
+            (now_in.add if event == "enter" else now_in.discard)(name)
+            events.append(
+                {
+                    "type": "zone",
+                    "event": event,
+                    "zone": name,
+                    "device_id": self.device_id,
+                    "site_id": self.site.site_id,
+                    "floor_id": self.site.floor_ids[estimate.floor],
+                    "t": t,
+                    "x": round(estimate.x, 3),
+                    "y": round(estimate.y, 3),
+                    "accuracy": round(estimate.accuracy, 3),
+                    "zones": sorted(now_in),
+                }
+            )
+        return events
 
     def _position(self, estimate: Estimate, now: int) -> Position:
         """Return the API's position message for an estimate computed at ``now``."""

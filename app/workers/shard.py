@@ -22,6 +22,7 @@ from app.core.identity import DeviceKey
 from app.core.outages import retry_through_outage
 from app.devices.service import touch_devices
 from app.engine.samples import Batch, Estimate
+from app.outputs.outbox import Outbox
 from app.positions.models import PositionRecord
 from app.positions.service import store as store_positions
 from app.workers import snapshots
@@ -63,6 +64,7 @@ class Shard:
         self.store = snapshots or DatabaseSnapshots()
         self.sites = sites or SiteCache(settings=settings, sessions=sessions)
         self.on_storage_wait = on_storage_wait
+        self.outbox = Outbox(refresh_ms=round(settings.output_refresh_s * 1000), clock=clock)
         self.devices: dict[DeviceKey, DeviceSession] = {}
         """The devices held here, least recently heard first (``_heard``)."""
         self.counters: Counter[str] = Counter()
@@ -87,6 +89,7 @@ class Shard:
             engines=engines,
             now=now,
             zone_dwell_ms=round(self.settings.zone_dwell_s * 1000),
+            zone_exit_tolerance=self.settings.zone_exit_tolerance,
         )
         stored = self.store.load(db, device.key)
         if stored is not None:
@@ -155,6 +158,7 @@ class Shard:
         started = time.perf_counter()
         results: list[Done] = []
         rows: list[Position] = []
+        events: list[ZoneEvent] = []
         # a device's silence is timed from when its samples were taken in
         now = self.clock()
         routed = self._storage(lambda db: self._route(db, messages, now), "reading devices")
@@ -182,8 +186,9 @@ class Shard:
             if device is None:
                 results.append(Done(msg.batch_id, msg.site_id, msg.device_id))
                 continue
-            positions, events = self._emit(device, estimates, now)
+            positions, emitted = self._emit(device, estimates, now)
             rows.extend(positions)
+            events.extend(emitted)
             results.append(
                 Done(
                     msg.batch_id,
@@ -193,7 +198,7 @@ class Shard:
                     late=late,
                     duplicate=duplicate,
                     positions=[public(p) for p in positions],
-                    events=events,
+                    events=emitted,
                     processed_t=device.processed_t,
                     processed_wifi_t=device.processed_wifi_t,
                 )
@@ -204,6 +209,8 @@ class Shard:
 
         def write(db: Session) -> None:
             store_positions(db, [_row(p) for p in rows])
+            # in the same transaction: a position is stored with its outbox rows or not at all
+            self.counters["outbox"] += self.outbox.add(db, [*rows, *events])
             touch_devices(db=db, heard=heard, now=now)
             self._write_snapshots(db, snaps)
 
@@ -314,11 +321,16 @@ class Shard:
                 held[i] = estimates[devices[i].device_id]
         return held
 
-    def _store_flushed(self, rows: list[Position], snaps: list[Snapshot], what: str) -> None:
-        """Store flushed positions and snapshots, through an outage."""
+    def _store_flushed(
+        self, results: list[Emitted], rows: list[Position], snaps: list[Snapshot], what: str
+    ) -> None:
+        """Store flushed positions, their zone events' outbox rows and snapshots, through an
+        outage."""
+        events = [event for result in results for event in result.events]
 
         def write(db: Session) -> None:
             store_positions(db, [_row(p) for p in rows])
+            self.counters["outbox"] += self.outbox.add(db, [*rows, *events])
             self._write_snapshots(db, snaps)
 
         if rows or snaps:
@@ -362,7 +374,7 @@ class Shard:
         results, rows = self._flush(quiet, now)
         # a device gone quiet is snapshotted once: the batches it holds are then covered
         snaps = self._due_snapshots(quiet + idle, force=True)
-        self._store_flushed(rows, snaps, "storing flushed positions")
+        self._store_flushed(results, rows, snaps, "storing flushed positions")
         for device in idle:
             # its snapshot is stored, or it never held a state worth one
             device.covered = device.consumed
@@ -380,7 +392,8 @@ class Shard:
         now = self.clock()
         devices = list(self.devices.values())
         results, rows = self._flush([d for d in devices if d.pending], now)
-        self._store_flushed(rows, self._due_snapshots(devices, force=True), "draining")
+        snaps = self._due_snapshots(devices, force=True)
+        self._store_flushed(results, rows, snaps, "draining")
         for device in devices:
             self._evict(device)
             self.counters["evicted"] += 1

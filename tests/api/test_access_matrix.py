@@ -183,6 +183,16 @@ MATRIX: dict[tuple[str, str], Entry] = {
     ("POST", "/v1/sites/{site_id}/surveys"): Entry(
         "/v1/sites/{b}/surveys", lambda w: _survey(), admin=201
     ),
+    ("PUT", "/v1/sites/{site_id}/outputs/{output_id}"): Entry(
+        "/v1/sites/{b}/outputs/hook",
+        lambda w: {"kind": "webhook", "url": "http://127.0.0.1:9/", "secret": "s3cret-value"},
+        admin=201,
+    ),
+    ("GET", "/v1/sites/{site_id}/outputs"): Entry("/v1/sites/{b}/outputs"),
+    ("GET", "/v1/sites/{site_id}/outputs/{output_id}"): Entry("/v1/sites/{b}/outputs/hook"),
+    ("DELETE", "/v1/sites/{site_id}/outputs/{output_id}"): Entry(
+        "/v1/sites/{b}/outputs/hook", admin=204
+    ),
     # last: they remove what the others read
     ("DELETE", "/v1/sites/{site_id}/floors/{floor_id}"): Entry("/v1/sites/{b}/floors/G", admin=204),
     ("DELETE", "/v1/sites/{site_id}"): Entry("/v1/sites/{b}", admin=204),

@@ -1,0 +1,1 @@
+"""Outputs: positions and zone events delivered to MQTT brokers and webhooks."""
