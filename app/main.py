@@ -12,6 +12,7 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.analytics.router import router as analytics_router
 from app.core.config import Settings, get_settings
 from app.core.errors import install_error_handlers
 from app.core.heap import settle_heap
@@ -113,6 +114,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         radiomaps_router,
         tracks_router,
         planning_router,
+        analytics_router,
     ):
         app.include_router(router)
     if WEB_DIR.is_dir():

@@ -5,6 +5,7 @@ from __future__ import annotations
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
+from app.analytics.models import ZoneEventRecord
 from app.core.errors import NotFound
 from app.devices.models import Device, DeviceStateRecord
 from app.positions.models import PositionRecord
@@ -50,6 +51,7 @@ def list_sites(*, db: Session, only: str | None, limit: int, offset: int) -> tup
 def delete_site(*, db: Session, site: Site) -> None:
     """Delete the site with its floors, surveys, devices, positions and device states."""
     db.execute(delete(PositionRecord).where(PositionRecord.site_id == site.id))
+    db.execute(delete(ZoneEventRecord).where(ZoneEventRecord.site_id == site.id))
     db.execute(delete(DeviceStateRecord).where(DeviceStateRecord.site_id == site.id))
     db.execute(delete(Device).where(Device.site_id == site.id))
     db.delete(site)

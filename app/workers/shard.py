@@ -16,6 +16,7 @@ from typing import TypeVar
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.analytics.service import store_zone_events
 from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.identity import DeviceKey
@@ -155,6 +156,7 @@ class Shard:
         started = time.perf_counter()
         results: list[Done] = []
         rows: list[Position] = []
+        zone_rows: list[ZoneEvent] = []
         # a device's silence is timed from when its samples were taken in
         now = self.clock()
         routed = self._storage(lambda db: self._route(db, messages, now), "reading devices")
@@ -184,6 +186,7 @@ class Shard:
                 continue
             positions, events = self._emit(device, estimates, now)
             rows.extend(positions)
+            zone_rows.extend(events)
             results.append(
                 Done(
                     msg.batch_id,
@@ -204,6 +207,7 @@ class Shard:
 
         def write(db: Session) -> None:
             store_positions(db, [_row(p) for p in rows])
+            store_zone_events(db, zone_rows)
             touch_devices(db=db, heard=heard, now=now)
             self._write_snapshots(db, snaps)
 
@@ -314,14 +318,18 @@ class Shard:
                 held[i] = estimates[devices[i].device_id]
         return held
 
-    def _store_flushed(self, rows: list[Position], snaps: list[Snapshot], what: str) -> None:
-        """Store flushed positions and snapshots, through an outage."""
+    def _store_flushed(
+        self, results: list[Emitted], rows: list[Position], snaps: list[Snapshot], what: str
+    ) -> None:
+        """Store flushed positions, their zone events and snapshots, through an outage."""
+        events = [e for r in results for e in r.events]
 
         def write(db: Session) -> None:
             store_positions(db, [_row(p) for p in rows])
+            store_zone_events(db, events)
             self._write_snapshots(db, snaps)
 
-        if rows or snaps:
+        if rows or events or snaps:
             self._storage(write, what)
             self._saved(snaps)
 
@@ -362,7 +370,7 @@ class Shard:
         results, rows = self._flush(quiet, now)
         # a device gone quiet is snapshotted once: the batches it holds are then covered
         snaps = self._due_snapshots(quiet + idle, force=True)
-        self._store_flushed(rows, snaps, "storing flushed positions")
+        self._store_flushed(results, rows, snaps, "storing flushed positions")
         for device in idle:
             # its snapshot is stored, or it never held a state worth one
             device.covered = device.consumed
@@ -380,7 +388,7 @@ class Shard:
         now = self.clock()
         devices = list(self.devices.values())
         results, rows = self._flush([d for d in devices if d.pending], now)
-        self._store_flushed(rows, self._due_snapshots(devices, force=True), "draining")
+        self._store_flushed(results, rows, self._due_snapshots(devices, force=True), "draining")
         for device in devices:
             self._evict(device)
             self.counters["evicted"] += 1
