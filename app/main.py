@@ -13,6 +13,7 @@ from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import __version__
+from app.analytics.router import router as analytics_router
 from app.core.config import Settings, get_settings
 from app.core.errors import install_error_handlers
 from app.core.heap import settle_heap
@@ -117,6 +118,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         tracks_router,
         planning_router,
         outputs_router,
+        analytics_router,
     ):
         app.include_router(router)
     if WEB_DIR.is_dir():

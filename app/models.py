@@ -1,5 +1,6 @@
 """Every table, imported in one place so metadata and Alembic see them all."""
 
+from app.analytics.models import ZoneEventRecord
 from app.core.db import Base
 from app.devices.models import Device, DeviceStateRecord
 from app.floors.models import FloorRecord
@@ -27,4 +28,5 @@ __all__ = [
     "Site",
     "SurveyRecord",
     "Track",
+    "ZoneEventRecord",
 ]

@@ -13,6 +13,8 @@ import pytest
 APP = Path(__file__).resolve().parents[1] / "app"
 ENGINE_THIRD_PARTY = {"numpy", "scipy", "numba"}
 """What the engine may import: numerics (numba compiles its hot loops), no web, no database."""
+# the counting of occupancy and the placing of heatmap cells: numpy only, checked by hand
+ANALYTICS_PURE = {"app.analytics.occupancy", "app.analytics.heatmap"}
 ROUTER = re.compile(r"^app\.\w+\.router(\.|$)")
 DOMAIN_SERVICE = re.compile(r"^app\.\w+\.service$")
 REQUEST_LAYER = re.compile(r"^app\.(main|\w+\.router|\w+\.deps)$")
@@ -60,6 +62,10 @@ def violations(module: str, imports: list[str]) -> list[str]:
             or name.split(".")[0] in ENGINE_THIRD_PARTY
         ):
             found.append(f"{module} (engine) imports {name}")
+        if module in ANALYTICS_PURE and not (
+            name.split(".")[0] in sys.stdlib_module_names or name.split(".")[0] == "numpy"
+        ):
+            found.append(f"{module} (analytics arithmetic) imports {name}")
         if _inside(module, "app.workers") and ROUTER.match(name):
             found.append(f"{module} (workers) imports the router {name}")
         if DOMAIN_SERVICE.match(module) and _inside(name, "app.workers"):
@@ -106,6 +112,7 @@ def test_relative_imports_are_resolved() -> None:
         ("app.ingest.service", "from ..workers import convert"),
         ("app.state", "from app.tracks.router import router"),
         ("app.tracks.jobs", "from app.state import AppState"),
+        ("app.analytics.occupancy", "from sqlalchemy import select"),
     ],
 )
 def test_the_checker_catches_a_violation(module: str, source: str) -> None:

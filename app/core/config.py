@@ -439,6 +439,42 @@ class Settings(BaseSettings):
         description="Largest accuracy-map grid computed for one request (cells).",
     )
 
+    # Analytics.
+    analytics_max_buckets: int = Field(
+        default=10_080,
+        ge=1,
+        le=1_000_000,
+        description="Most buckets one occupancy query answers (10,080: a week by the minute).",
+    )
+    analytics_max_range_days: float = Field(
+        default=31.0,
+        gt=0,
+        le=3660,
+        description="Longest time range (days of measurement time) of one occupancy or "
+        "heatmap query.",
+    )
+    heatmap_gap_cap_s: float = Field(
+        default=5.0,
+        gt=0,
+        le=3600,
+        description="A position weighs the time until its device's next position, at most "
+        "this long: a device sends at least once a second, so a longer gap is silence, and "
+        "a device that went quiet does not paint its last cell for hours.",
+    )
+    heatmap_max_cells: int = Field(
+        default=400_000,
+        ge=1,
+        le=100_000_000,
+        description="Largest heatmap grid computed for one request (cells).",
+    )
+    export_page_rows: int = Field(
+        default=5000,
+        ge=1,
+        le=1_000_000,
+        description="Positions read per query while an export streams: bounds the memory an "
+        "export of months holds at once.",
+    )
+
     # Track fitting.
     trackfit_processes: int = Field(
         default=1, ge=1, le=256, description="Processes fitting tracks."

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from typing import Literal
 
 import numpy as np
@@ -10,9 +9,9 @@ from sqlalchemy.orm import Session
 
 from app.core.errors import Invalid
 from app.engine.accuracy_map import AccuracyMap, floor_accuracy
+from app.floors.render import grid_png
 from app.floors.service import require_floor
 from app.geometry.floormap import parse_floor_map
-from app.geometry.raster import wall_segments
 from app.sites.assembly import assemble_site
 from app.sites.models import Site
 
@@ -43,40 +42,19 @@ def accuracy_map(
 
 def render_png(*, db: Session, site: Site, floor_id: str, result: AccuracyMap, tech: str) -> bytes:
     """Draw the horizontal accuracy as a heatmap over the floor plan."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     floor = require_floor(db=db, site_id=site.id, floor_id=floor_id)
     fmap = parse_floor_map(floor.geojson)
     horizontal = np.hypot(result.sigma_x, result.sigma_y)
-    ny, nx = result.shape
-    extent = (
-        result.origin[0],
-        result.origin[0] + nx * result.cell,
-        result.origin[1],
-        result.origin[1] + ny * result.cell,
-    )
-    width = extent[1] - extent[0]
-    height = extent[3] - extent[2]
-    fig, ax = plt.subplots(figsize=(8, max(3.0, 8 * height / max(width, 1e-9))), dpi=100)
     finite = horizontal[np.isfinite(horizontal)]
-    vmax = float(np.percentile(finite, 95)) if finite.size else 1.0
-    image = ax.imshow(
-        horizontal, origin="lower", extent=extent, cmap="viridis_r", vmin=0, vmax=vmax
-    )
-    for x1, y1, x2, y2 in wall_segments(fmap):
-        ax.plot([x1, x2], [y1, y2], color="black", linewidth=0.6)
     emitters = fmap.of_kind("transmitter" if tech == "ble" else "anchor")
-    if emitters:
-        ax.scatter([e.x for e in emitters], [e.y for e in emitters], marker="^", color="red", s=25)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(f"{site.id}/{floor_id}: expected horizontal error ({tech})")
-    fig.colorbar(image, ax=ax, label="σ horizontal (m)", shrink=0.8)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return buffer.getvalue()
+    return grid_png(
+        fmap,
+        horizontal,
+        (float(result.origin[0]), float(result.origin[1])),
+        result.cell,
+        title=f"{site.id}/{floor_id}: expected horizontal error ({tech})",
+        label="σ horizontal (m)",
+        cmap="viridis_r",
+        vmax=float(np.percentile(finite, 95)) if finite.size else 1.0,
+        markers=[(e.x, e.y) for e in emitters],
+    )

@@ -22,6 +22,8 @@ class PositionRecord(Base):
     # a position is stored once, however often its batch was processed
     __table_args__ = (
         Index("ix_positions_site_device_t", "site_id", "device_id", "t", "smoothed", unique=True),
+        # a heatmap or a site's export reads one time range of every device of the site
+        Index("ix_positions_site_t", "site_id", "t"),
     )
 
     id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)

@@ -8,11 +8,13 @@ key scoped to one site, ``?site_id=``, or an id that only one site has).
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Query, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import StreamingResponse
 from sqlalchemy.orm import Session
 
+from app.analytics import export
 from app.core.errors import ApiError, Conflict, Forbidden, NotFound
 from app.core.schemas import ID_PATTERN, DeviceIdPath
 from app.core.security import Principal
@@ -22,7 +24,7 @@ from app.positions import service
 from app.positions.schemas import Position, PositionPage
 from app.sites.assembly import site_tuning
 from app.sites.deps import SiteDep
-from app.state import SessionDep, app_state
+from app.state import SessionDep, SettingsDep, app_state
 
 router = APIRouter(prefix="/v1", tags=["positions"])
 
@@ -102,12 +104,39 @@ def latest_position(
     return _latest(db, site.id, device_id)
 
 
-@router.get("/sites/{site_id}/devices/{device_id}/positions", response_model=PositionPage)
+@router.get(
+    "/sites/{site_id}/devices/{device_id}/positions",
+    response_model=PositionPage,
+    responses={200: {"content": {"text/csv": {}, "application/geo+json": {}}}},
+)
 def position_history(
-    _: SiteReaderDep, site: SiteDep, device_id: DeviceIdPath, db: SessionDep, query: HistoryDep
-) -> PositionPage:
-    """Return the device's positions in ``[from, to]``, ascending ``t``, a page at a time."""
-    return _history(db, site.id, device_id, query)
+    _: SiteReaderDep,
+    site: SiteDep,
+    device_id: DeviceIdPath,
+    db: SessionDep,
+    query: HistoryDep,
+    request: Request,
+    settings: SettingsDep,
+    format: Annotated[
+        Literal["json", "csv", "geojson"] | None,
+        Query(description="Export the whole of [from, to] streamed (or Accept: text/csv)"),
+    ] = None,
+) -> Any:
+    """Return the device's positions in ``[from, to]``, ascending ``t``, a page at a time;
+    with ``format=csv|geojson`` (or ``Accept: text/csv``) the whole range, streamed."""
+    if format is None and "text/csv" in request.headers.get("accept", ""):
+        format = "csv"
+    if format is None or format == "json":
+        return _history(db, site.id, device_id, query)
+    _require_device(db, site.id, device_id)
+    rows = export.pages(
+        app_state(request).sessions,
+        export.device_rows(site.id, device_id),
+        t_from=query.t_from,
+        t_to=query.t_to,
+        page_rows=settings.export_page_rows,
+    )
+    return StreamingResponse(export.WRITERS[format](rows), media_type=export.MEDIA_TYPES[format])
 
 
 SiteQuery = Annotated[

@@ -81,6 +81,14 @@ def history(
 ) -> list[PositionRecord]:
     """Return up to ``limit`` positions with ``t_from <= t <= t_to``, ascending t.
 
+    Refined positions are preferred (:func:`history_query`).
+    """
+    return _page(db, history_query(site_id=site_id, device_id=device_id), t_from, t_to, limit)
+
+
+def history_query(*, site_id: str, device_id: str) -> Select[PositionRecord]:
+    """Return the query of a device's history, unordered and unbounded.
+
     Refined positions are preferred: up to the last refined time the history
     holds the refined positions, after it the live ones (one per time).
     """
@@ -90,7 +98,7 @@ def history(
         .where(*own, PositionRecord.smoothed.is_(True))
         .scalar_subquery()
     )
-    query = select(PositionRecord).where(
+    return select(PositionRecord).where(
         *own,
         or_(
             PositionRecord.smoothed.is_(True),
@@ -98,7 +106,6 @@ def history(
             PositionRecord.t > refined_until,
         ),
     )
-    return _page(db, query, t_from, t_to, limit)
 
 
 def _page(

@@ -5,6 +5,7 @@ from __future__ import annotations
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
+from app.analytics.models import ZoneEventRecord
 from app.core.errors import NotFound
 from app.devices.models import Device, DeviceStateRecord
 from app.outputs.models import OutboxRow
@@ -52,6 +53,7 @@ def delete_site(*, db: Session, site: Site) -> None:
     """Delete the site with its floors, surveys, devices, positions, device states, outputs
     and their outbox."""
     db.execute(delete(PositionRecord).where(PositionRecord.site_id == site.id))
+    db.execute(delete(ZoneEventRecord).where(ZoneEventRecord.site_id == site.id))
     db.execute(delete(DeviceStateRecord).where(DeviceStateRecord.site_id == site.id))
     db.execute(delete(Device).where(Device.site_id == site.id))
     db.execute(delete(OutboxRow).where(OutboxRow.site_id == site.id))

@@ -97,6 +97,20 @@ export class Api {
     );
   }
 
+  heatmap(siteId, floorId, { from, to, cell }) {
+    const query = new URLSearchParams({ from, to, cell: String(cell) });
+    return this.request(
+      "GET",
+      `/v1/sites/${enc(siteId)}/floors/${enc(floorId)}/heatmap?${query}`,
+      { accept: "application/json" },
+    );
+  }
+
+  occupancy(siteId, zone, { from, to, bucket }) {
+    const query = new URLSearchParams({ from, to, bucket_s: String(bucket) });
+    return this.request("GET", `/v1/sites/${enc(siteId)}/zones/${enc(zone)}/occupancy?${query}`);
+  }
+
   /** Return a site's device's positions in [from, to] (ms), following next_from up to `cap` items. */
   async history(siteId, deviceId, from, to, { pageSize = 1000, cap = 50_000 } = {}) {
     const items = [];

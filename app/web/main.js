@@ -3,6 +3,7 @@
 
 import { AccuracyOverlay } from "./accuracy.js";
 import { AdminView } from "./admin.js";
+import { AnalyticsView } from "./analytics.js";
 import { Api, ApiError, forgetKey, storedKey, storeKey } from "./api.js";
 import { METHOD_SHAPES, shapeIcon } from "./devices.js";
 import { LiveView } from "./live.js";
@@ -56,6 +57,16 @@ class Dashboard {
       legend: $("accuracy-ramp"),
       scaleTop: $("accuracy-top"),
     });
+    this.analytics = new AnalyticsView(api, this.plan, {
+      form: $("analytics-form"),
+      from: $("analytics-from"),
+      to: $("analytics-to"),
+      cell: $("analytics-cell"),
+      zone: $("analytics-zone"),
+      bucket: $("analytics-bucket"),
+      status: $("analytics-status"),
+      chart: $("analytics-chart"),
+    });
     this.admin = new AdminView(
       api,
       this.plan,
@@ -104,6 +115,8 @@ class Dashboard {
     this.live.setVisible(name !== "replay");
     this.replay.setVisible(name === "replay");
     if (name === "replay") this.replay.defaultRange();
+    this.analytics.setVisible(name === "analytics");
+    if (name === "analytics") this.analytics.defaultRange();
   }
 
   /** List the sites and select `preferred` (else the one in the URL, else the first). */
@@ -155,6 +168,7 @@ class Dashboard {
       const doc = await this.api.floor(this.siteId, floorId);
       if (selection !== this.selection) return;
       const { bounds } = this.plan.drawMap("map", doc);
+      this.analytics.setFloor(this.siteId, floorId, doc);
       this.plan.walls = new WallIndex(doc);
       this.plan.setBounds(bounds);
       svg.dataset.floor = floorId;

@@ -16,6 +16,7 @@ from typing import TypeVar
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.analytics.service import store_zone_events
 from app.core.config import Settings
 from app.core.db import session_scope
 from app.core.identity import DeviceKey
@@ -209,6 +210,7 @@ class Shard:
 
         def write(db: Session) -> None:
             store_positions(db, [_row(p) for p in rows])
+            store_zone_events(db, events)
             # in the same transaction: a position is stored with its outbox rows or not at all
             self.counters["outbox"] += self.outbox.add(db, [*rows, *events])
             touch_devices(db=db, heard=heard, now=now)
@@ -324,16 +326,17 @@ class Shard:
     def _store_flushed(
         self, results: list[Emitted], rows: list[Position], snaps: list[Snapshot], what: str
     ) -> None:
-        """Store flushed positions, their zone events' outbox rows and snapshots, through an
-        outage."""
+        """Store flushed positions, their zone events with their outbox rows, and snapshots,
+        through an outage."""
         events = [event for result in results for event in result.events]
 
         def write(db: Session) -> None:
             store_positions(db, [_row(p) for p in rows])
+            store_zone_events(db, events)
             self.counters["outbox"] += self.outbox.add(db, [*rows, *events])
             self._write_snapshots(db, snaps)
 
-        if rows or snaps:
+        if rows or events or snaps:
             self._storage(write, what)
             self._saved(snaps)
 

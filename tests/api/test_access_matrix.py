@@ -154,6 +154,13 @@ MATRIX: dict[tuple[str, str], Entry] = {
     ("GET", "/v1/sites/{site_id}/floors/{floor_id}/accuracy"): Entry(
         "/v1/sites/{b}/floors/G/accuracy?cell=2"
     ),
+    ("GET", "/v1/sites/{site_id}/floors/{floor_id}/heatmap"): Entry(
+        "/v1/sites/{b}/floors/G/heatmap?from=0&to=86400000"
+    ),
+    ("GET", "/v1/sites/{site_id}/zones/{zone}/occupancy"): Entry(
+        "/v1/sites/{b}/zones/Lab/occupancy?from=0&to=86400000"
+    ),
+    ("GET", "/v1/sites/{site_id}/positions"): Entry("/v1/sites/{b}/positions?from=0&to=86400000"),
     ("GET", "/v1/sites/{site_id}/devices"): Entry("/v1/sites/{b}/devices"),
     ("GET", "/v1/sites/{site_id}/devices/{device_id}/position"): Entry(
         "/v1/sites/{b}/devices/{device}/position"

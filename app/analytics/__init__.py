@@ -1,0 +1,2 @@
+"""Analytics on stored positions and zone events: zone occupancy and dwell, floor heatmaps,
+and exports of the history."""
