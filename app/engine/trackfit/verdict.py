@@ -7,8 +7,9 @@ at all, the fitted track is a guess that can be worse than the upload: the
 answer is then the uploaded track itself, placed at its start, marked
 unfitted with the reason. Either way every point carries a radius that grows
 with the distance walked, calibrated so that about 68 % of errors fall
-within it (the thresholds and slopes are measured on validation walks by
-``locus eval trackfit --tune``).
+within it. The defaults are starting values, not yet measured: the margin
+thresholds follow ``search``'s ambiguity margin and the slopes are a first
+guess; they are to be tuned on validation walks and checked for coverage.
 """
 
 from __future__ import annotations
