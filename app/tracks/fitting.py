@@ -16,7 +16,16 @@ from app.engine.plan import FloorPlan
 from app.engine.radiomap import RadioMap
 from app.engine.scan_knn import ReferenceScans, ScanKnnParams
 from app.engine.trackfit.anchors import AnchorCosts, WifiScan, wifi_anchor_costs
-from app.engine.trackfit.search import Candidate, TrackSearchParams, search_track
+from app.engine.trackfit.compass import fused_directions
+from app.engine.trackfit.search import (
+    Candidate,
+    TrackSearch,
+    TrackSearchParams,
+    durations,
+    rigid_tracks,
+    search_track,
+)
+from app.engine.trackfit.verdict import Verdict, VerdictParams, judge
 from app.geometry.floormap import parse_floor_map
 from app.geometry.raster import floor_plan
 from app.radiomaps.codec import decode_map
@@ -85,11 +94,58 @@ def _candidate(c: Candidate, points: list[dict[str, Any]] | None) -> dict[str, A
     }
 
 
-def _points(times: list[int], xy: np.ndarray) -> list[dict[str, Any]]:
-    return [
+def _points(
+    times: list[int], xy: np.ndarray, radius: np.ndarray | None = None
+) -> list[dict[str, Any]]:
+    out = [
         {"t": int(t), "x": round(float(x), 3), "y": round(float(y), 3)}
         for t, (x, y) in zip(times, xy, strict=False)
     ]
+    if radius is not None:
+        for point, r in zip(out, radius, strict=False):
+            point["radius"] = round(float(r), 3)
+    return out
+
+
+DEFAULT_HEADING_SIGMA_DEG = 10.0
+"""σ of one per-link compass heading when the track does not say (indoors, a few to tens
+of degrees)."""
+
+
+def _compass(segments: list[dict[str, Any]]) -> np.ndarray | None:
+    """Return the per-link headings as engine directions (rad, CCW from +x; NaN where a link
+    has none), or None when no link has one."""
+    given = [s.get("heading") for s in segments]
+    if all(h is None for h in given):
+        return None
+    return np.array([np.nan if h is None else math.radians(90.0 - h) for h in given])
+
+
+def placed_track(
+    found: TrackSearch,
+    start: np.ndarray,
+    lengths: np.ndarray,
+    turns: np.ndarray,
+    *,
+    heading: float | None,
+    compass: np.ndarray | None,
+    sigma: float,
+    dt: np.ndarray,
+    params: TrackSearchParams,
+) -> np.ndarray:
+    """Return the uploaded track placed at its start, as measured (no scale, drift or bias).
+
+    Its direction: the per-link compass fused with the turns, else the given
+    heading, else (nothing orients it) the best hypothesis' rotation.
+    """
+    if compass is not None:
+        fused = fused_directions(turns, compass, sigma, params.compass_walk, dt)
+        theta, rel = float(fused[0]), np.r_[0.0, np.diff(fused)]
+    else:
+        theta = heading + float(turns[0]) if heading is not None else found.best.rotation
+        rel = np.r_[0.0, turns[1:]]
+    z = rigid_tracks(start, lengths, np.array([theta]), np.ones(1), rel[None, :])[0]
+    return np.column_stack([z.real, z.imag])
 
 
 def fit_in_pool(job: dict[str, Any]) -> dict[str, Any]:
@@ -106,11 +162,17 @@ def fit_in_pool(job: dict[str, Any]) -> dict[str, Any]:
         trim_allocator()
 
 
-def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dict[str, Any]:
+def run_fit(
+    job: dict[str, Any],
+    search: TrackSearchParams | None = None,
+    verdict_params: VerdictParams | None = None,
+) -> dict[str, Any]:
     """Fit one track; return status, points, score, what the fit knows, time (never raises).
 
-    ``search`` replaces the fitter's default constants (an evaluation studying
-    them); the request's own overrides and the job's time limit apply on top.
+    ``search`` and ``verdict_params`` replace the fitter's default constants
+    (an evaluation studying them); the request's own overrides and the job's
+    time limit apply on top. A fit the evidence does not single out is
+    answered with the uploaded track placed at its start (``fitted`` false).
     """
     started = time.perf_counter()
     try:
@@ -128,18 +190,44 @@ def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dic
                 time_limit_s=job["time_limit_s"],
             ),
         )
-        heading = request.get("heading")
+        given = request.get("heading")
+        # API heading: degrees clockwise from +y; engine direction: radians CCW from +x
+        heading = None if given is None else math.radians(90.0 - given)
         times = np.array([request["t0"], *(s["t"] for s in segments)], dtype=float)
+        seconds = (times - times[0]) / 1000.0
         anchors = _anchors(job, segments, params.fit.anchor_sigma)
+        compass = _compass(segments)
+        sigma = math.radians(request.get("heading_sigma_deg") or DEFAULT_HEADING_SIGMA_DEG)
+        start = np.array([request["start"]["x"], request["start"]["y"]])
+        lengths = np.array([s["length"] for s in segments])
+        turns = np.array([s["turn"] for s in segments])
         found = search_track(
             plan,
-            np.array([request["start"]["x"], request["start"]["y"]]),
-            np.array([s["length"] for s in segments]),
-            np.array([s["turn"] for s in segments]),
-            # API heading: degrees clockwise from +y; engine direction: radians CCW from +x
-            heading=None if heading is None else math.radians(90.0 - heading),
-            times=(times - times[0]) / 1000.0,
+            start,
+            lengths,
+            turns,
+            heading=heading,
+            times=seconds,
             anchors=anchors,
+            compass=compass,
+            compass_sigma=sigma,
+            params=params,
+        )
+        verdict = judge(
+            found,
+            lengths,
+            oriented=heading is not None or compass is not None,
+            params=verdict_params or VerdictParams(),
+        )
+        placed = placed_track(
+            found,
+            start,
+            lengths,
+            turns,
+            heading=heading,
+            compass=compass,
+            sigma=sigma,
+            dt=durations(lengths, seconds, params.walking_speed),
             params=params,
         )
     except Exception as exc:  # a fit that cannot run must still finish as failed
@@ -148,13 +236,33 @@ def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dic
             "error": f"{type(exc).__name__}: {exc}",
             "elapsed_ms": (time.perf_counter() - started) * 1000,
         }
+    return _answer(request, params, found, verdict, placed, anchors, started)
+
+
+def _answer(
+    request: dict[str, Any],
+    params: TrackSearchParams,
+    found: TrackSearch,
+    verdict: Verdict,
+    placed: np.ndarray,
+    anchors: AnchorCosts | None,
+    started: float,
+) -> dict[str, Any]:
+    """Return the stored result of a search: its points (the fit or the placed upload) and
+    what the fit knows of itself."""
+    segments = request["segments"]
     t_points = [request["t0"], *(s["t"] for s in segments)]
     best, runner_up = found.best, found.runner_up
-    # the radius of the last point: the grid, the ends of as-good fits, and an ambiguous
-    # runner-up's end (either may be the walker)
-    accuracy = max(params.fit.grid / 2, best.fit.spread)
+    # the radius of the last point: the grid, the ends of as-good fits, an ambiguous
+    # runner-up's end (either may be the walker), and the calibrated radius
+    accuracy = max(params.fit.grid / 2, float(verdict.radius[-1]))
+    if verdict.fitted:
+        accuracy = max(accuracy, best.fit.spread)
     if found.ambiguous and runner_up is not None:
         accuracy = max(accuracy, float(np.hypot(*(runner_up.fit.points[-1] - best.fit.points[-1]))))
+    done = not best.fit.failed
+    xy = best.fit.points if verdict.fitted or not done else placed
+    radius = verdict.radius[: len(xy)]
     candidates = [_candidate(best, None)]
     if runner_up is not None:
         shown = _points(t_points, runner_up.fit.points) if found.ambiguous else None
@@ -162,7 +270,7 @@ def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dic
     return {
         "status": "failed" if best.fit.failed else "done",
         "error": best.fit.failed,
-        "points": _points(t_points, best.fit.points),
+        "points": _points(t_points, xy, radius),
         "score": best.score,
         "elapsed_ms": (time.perf_counter() - started) * 1000,
         "grid": params.fit.grid,
@@ -175,4 +283,8 @@ def run_fit(job: dict[str, Any], search: TrackSearchParams | None = None) -> dic
         "anchors": len(anchors) if anchors is not None else 0,
         "ambiguous": found.ambiguous,
         "candidates": candidates,
+        "fitted": verdict.fitted and done,
+        "reason": verdict.reason if done else best.fit.failed,
+        "margin": round(verdict.margin, 4) if math.isfinite(verdict.margin) else None,
+        "bias": None if found.bias is None else round(-math.degrees(found.bias), 2),
     }

@@ -31,6 +31,10 @@ FIT_FIELDS = (
     "anchors",
     "ambiguous",
     "candidates",
+    "fitted",
+    "reason",
+    "margin",
+    "bias",
 )
 """What a fit knows of itself, stored with its points and shown by ``GET /v1/tracks/{id}``."""
 

@@ -41,6 +41,8 @@ class Segment(BaseModel):
 
     ``wifi`` is a scan taken at the link's end, an absolute anchor the fit
     scores against the floor's radio map (ignored while the site has none).
+    ``heading`` is the link's absolute direction as the phone's compass gives
+    it: soft evidence whose constant bias the fit estimates.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -49,6 +51,10 @@ class Segment(BaseModel):
     length: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)]
     turn: Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi, allow_inf_nan=False)]
     wifi: Annotated[list[ScanReading], Field(min_length=1, max_length=500)] | None = None
+    heading: Annotated[float, Field(ge=0, lt=360, allow_inf_nan=False)] | None = Field(
+        default=None,
+        description="Absolute direction of this link (a compass), degrees clockwise from +y.",
+    )
 
 
 class TrackCreate(BaseModel):
@@ -64,6 +70,10 @@ class TrackCreate(BaseModel):
     segments: Annotated[list[Segment], Field(min_length=1, max_length=20_000)]
     heading: Annotated[float, Field(ge=0, lt=360, allow_inf_nan=False)] | None = Field(
         default=None, description="Direction of the first link, degrees clockwise from +y."
+    )
+    heading_sigma_deg: Annotated[float, Field(gt=0, le=90, allow_inf_nan=False)] | None = Field(
+        default=None,
+        description="Standard deviation of one link heading (degrees); 10 when not given.",
     )
     grid: Annotated[float, Field(ge=0.25, le=5.0)] | None = None
     scales: Annotated[list[Scale], Field(min_length=1, max_length=9)] | None = None
@@ -89,6 +99,8 @@ class FittedPoint(BaseModel):
     t: int
     x: float
     y: float
+    radius: float | None = None
+    """Radius (m) within which about 68 % of such points lie from the walker."""
 
 
 class TrackCandidate(BaseModel):
@@ -140,3 +152,11 @@ class TrackRead(BaseModel):
     """A distinct fit scored within the ambiguity margin of the chosen one."""
     candidates: list[TrackCandidate] | None = None
     """The chosen fit and the runner-up (the best distinct one), with their scores."""
+    fitted: bool | None = None
+    """The points are the fit; false: they are the uploaded track placed at its start."""
+    reason: str | None = None
+    """Why the track was not fitted."""
+    margin: float | None = None
+    """Runner-up's score less the chosen fit's (null: no distinct hypothesis survived)."""
+    bias: float | None = None
+    """Estimated bias of the per-link headings (degrees, clockwise positive)."""

@@ -157,6 +157,7 @@ def test_an_ambiguous_fits_radius_reaches_the_runner_ups_end() -> None:
     }
     result = run_fit(job)
     assert result["status"] == "done" and result["ambiguous"], result
+    assert result["fitted"] is False and "rotation" in result["reason"]
     end, rival = result["points"][-1], result["candidates"][1]["points"][-1]
     gap = math.hypot(end["x"] - rival["x"], end["y"] - rival["y"])
     assert gap > 3.0 and result["accuracy"] >= gap - 1e-3
@@ -174,3 +175,27 @@ def test_scans_on_a_site_without_radio_maps_are_accepted_and_not_used(
     bad = _track(site_id)
     bad["segments"][0]["wifi"] = [{"id": "aa:bb:cc:dd:ee:01", "rssi": 7}]
     assert client.post("/v1/tracks", json=bad, headers=admin).status_code == 422
+
+
+def test_per_link_headings_are_validated_and_the_answer_says_whether_it_is_fitted(
+    client: TestClient, admin: dict, site_id: str
+) -> None:
+    bad = _track(site_id)
+    bad["segments"][3]["heading"] = 400.0
+    r = client.post("/v1/tracks", json=bad, headers=admin)
+    assert r.status_code == 422
+    assert "heading" in json.dumps(r.json()["error"]["details"])
+    r = client.post("/v1/tracks", json=_track(site_id, heading_sigma_deg=-1.0), headers=admin)
+    assert r.status_code == 422 and "heading_sigma_deg" in r.text
+    body = _track(site_id, heading=None, heading_sigma_deg=5.0)
+    for s in body["segments"]:
+        s["heading"] = 90.0
+    r = client.post("/v1/tracks", json=body, headers=admin)
+    assert r.status_code == 202, r.text
+    result = _wait_done(client, admin, r.json()["track_id"])
+    assert result["status"] == "done", result
+    assert isinstance(result["fitted"], bool)
+    assert result["fitted"] or result["reason"]
+    radius = [p["radius"] for p in result["points"]]
+    assert radius == sorted(radius) and radius[0] > 0
+    assert result["bias"] is not None

@@ -36,6 +36,7 @@ import numpy as np
 
 from app.engine.plan import FloorPlan
 from app.engine.trackfit.anchors import AnchorCosts
+from app.engine.trackfit.compass import fused_directions, wrap
 from app.engine.trackfit.fit import TrackFit, TrackFitParams, fit_tracks
 
 
@@ -109,6 +110,19 @@ class TrackSearchParams:
         of 109 withheld-heading fits, and the fits left unflagged erred 3.25 m
         against their raw 3.30 m (3.27 against 3.33 m before); with anchors
         2.86 against 3.48 m (3.48 against 3.41 m).
+    bias_step, bias_range : float
+        Compass biases b (rad) tried with per-link headings: every multiple of
+        ``bias_step`` within ±``bias_range`` (a phone's compass indoors is
+        rarely off by more than a few tens of degrees; the programme's Φ on
+        the first link covers the gaps).
+    bias_links : float
+        A bias hypothesis costs C2 |b| ``bias_links``: without a prior a
+        symmetric plan (a straight corridor) would pick among biases at random;
+        a few links' worth lets a corridor's direction outvote it.
+    compass_walk : float
+        σ_q (rad/√s), how fast the summed gyro turns wander from the truth
+        (``compass.fused_directions``): 2° per 0.7 m link at walking pace is
+        about 2.6°/√s.
     """
 
     fit: TrackFitParams = field(default_factory=TrackFitParams)
@@ -125,6 +139,10 @@ class TrackSearchParams:
     drift_seconds: float = 90.0
     screen_weight: float = 0.1
     ambiguity_margin: float = 1.0
+    bias_step: float = float(np.radians(5.0))
+    bias_range: float = float(np.radians(45.0))
+    bias_links: float = 3.0
+    compass_walk: float = float(np.radians(2.5))
 
 
 @dataclass(frozen=True)
@@ -166,6 +184,8 @@ class TrackSearch:
     ambiguous: bool
     screened: int
     """Number of hypotheses screened."""
+    bias: float | None = None
+    """The compass bias b (rad) of the best fit, when per-link headings were given."""
 
 
 def durations(lengths: np.ndarray, times: np.ndarray | None, speed: float) -> np.ndarray:
@@ -289,6 +309,8 @@ def search_track(
     heading: float | None = None,
     times: np.ndarray | None = None,
     anchors: AnchorCosts | None = None,
+    compass: np.ndarray | None = None,
+    compass_sigma: float = float(np.radians(10.0)),
     params: TrackSearchParams | None = None,
     clock: Callable[[], float] = time.perf_counter,
 ) -> TrackSearch:
@@ -311,6 +333,14 @@ def search_track(
         them links last ``length / walking_speed``.
     anchors : AnchorCosts, optional
         WiFi scans along the track: they screen and score every hypothesis.
+    compass : ndarray, shape (n,), optional
+        Absolute direction of each link (rad, CCW from +x; NaN where unknown)
+        with a constant unknown bias: fused with the turns
+        (``compass.fused_directions``), it replaces the drift hypotheses and
+        leaves only the bias, the rotation's, to search (``heading`` is then
+        not used: a phone's first heading comes from the same compass).
+    compass_sigma : float
+        σ_c (rad) of one compass reading.
     params : TrackSearchParams, optional
         Hypotheses and comparison constants.
     clock : callable
@@ -324,13 +354,29 @@ def search_track(
         raise ValueError("lengths and turns must have the same, non-zero length")
     if times is not None and np.asarray(times).shape != (lengths.size + 1,):
         raise ValueError("times must hold the start and every link's end")
-    if heading is None:
-        k = np.arange(int(np.ceil(2 * np.pi / p.rotation_step)))
-        thetas = -np.pi + p.rotation_step * k
-    else:
-        thetas = np.array([heading + turns[0]])
+    dt = durations(lengths, times, p.walking_speed)
     drift_set = np.asarray(p.drifts, dtype=float)
     scale_set = np.asarray(p.scales, dtype=float)
+    fused0 = None
+    if compass is not None:
+        fused = fused_directions(turns, compass, compass_sigma, p.compass_walk, dt)
+        fused0 = float(fused[0])
+        k = np.arange(
+            -np.floor(p.bias_range / p.bias_step), np.floor(p.bias_range / p.bias_step) + 1
+        )
+        # θ = ψ̃_0 - b for every bias b tried
+        thetas = wrap(fused0 - p.bias_step * k)
+        rotation_prior = p.fit.c2 * np.abs(p.bias_step * k) * p.bias_links
+        drift_set = np.zeros(1)
+        corrected = np.r_[0.0, np.diff(fused)][None, :]
+    else:
+        if heading is None:
+            k = np.arange(int(np.ceil(2 * np.pi / p.rotation_step)))
+            thetas = -np.pi + p.rotation_step * k
+        else:
+            thetas = np.array([heading + turns[0]])
+        rotation_prior = np.zeros(thetas.size)
+        corrected = hypothesis_turns(turns, dt, drift_set)
     # every (θ, s, β) by index, θ slowest
     ti, si, di = (
         g.ravel()
@@ -342,12 +388,11 @@ def search_track(
         )
     )
     theta, scale, drift = thetas[ti], scale_set[si], drift_set[di]
-    corrected = hypothesis_turns(turns, durations(lengths, times, p.walking_speed), drift_set)
     tracks = rigid_tracks(start, lengths, theta, scale, corrected, di)
     screen = screen_costs(plan, tracks, lengths, p)
-    # C1 |1 - s| N_s + C2 |β| T_β
+    # C1 |1 - s| N_s + C2 |β| T_β (+ C2 |b| N_b for a compass bias)
     prior = p.fit.c1 * np.abs(1.0 - scale) * p.scale_links
-    prior += p.fit.c2 * np.abs(drift) * p.drift_seconds
+    prior += p.fit.c2 * np.abs(drift) * p.drift_seconds + rotation_prior[ti]
     # ranked by what the final score will hold: screening share, priors, anchors
     total = p.screen_weight * screen + prior
     if anchors is not None and len(anchors):
@@ -394,4 +439,5 @@ def search_track(
     order = sorted(range(len(fitted)), key=lambda i: (fitted[i].score, i))
     best = fitted[order[0]]
     runner_up, ambiguous = rival_of(best, [fitted[i] for i in order[1:]], p)
-    return TrackSearch(best, runner_up, bool(ambiguous), int(theta.size))
+    bias = None if fused0 is None else float(wrap(np.array(fused0 - best.rotation)))
+    return TrackSearch(best, runner_up, bool(ambiguous), int(theta.size), bias)
