@@ -11,9 +11,10 @@ cut where it must be, at its largest gap: when an access point is heard again
 well after its reading in the open scan (a scan hears each once, though
 phones list some twice a few milliseconds apart) or when the scan would span
 more than ``max_span_ms``. A silence longer than ``gap_ms`` always ends a
-scan. On site1's walks sent with per-reading times this recovers most scans
+scan. On walks sent with per-reading times this recovers most scans
 exactly, where any fixed gap splits or merges many (``tests/engine/test_scans.py``
-pins it on recorded walks). Readings sharing a time are never split, so a
+pins the regrouping of scans spread as site1's phones report them). Readings
+sharing a time are never split, so a
 client that sends the scan's time gets its scans back exactly. Cuts are
 final once made: a live tracker that feeds readings in time order sees the
 same scans as a build that groups a whole walk at once.

@@ -1,5 +1,5 @@
 // Analytics tab: the floor's heatmap of device-seconds over the plan for a chosen time
-// range, and a zone's occupancy over time as a chart (API.md, "Analytics").
+// range, and a zone's occupancy over time as a chart (docs/api.md, "Analytics").
 // uPlot (app/web/vendor) is a classic script loaded before this module: the global uPlot.
 
 import { ApiError } from "./api.js";
