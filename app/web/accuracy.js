@@ -2,6 +2,7 @@
 // each cell of the floor (docs/api.md, "Planning"), drawn as a heatmap under the plan.
 
 import { ApiError } from "./api.js";
+import { rampColour } from "./ramp.js";
 
 // Small σ green, large σ red (RGB stops, evenly spaced from 0 to the scale's top).
 const RAMP = [
@@ -80,7 +81,7 @@ export class AccuracyOverlay {
     const context = canvas.getContext("2d");
     const image = context.createImageData(field.nx, field.ny);
     field.values.forEach((sigma, i) => {
-      const rgba = Number.isFinite(sigma) ? [...rampColour(sigma / top), ALPHA] : UNOBSERVABLE;
+      const rgba = Number.isFinite(sigma) ? [...rampColour(RAMP, sigma / top), ALPHA] : UNOBSERVABLE;
       image.data.set(rgba, 4 * i);
     });
     context.putImageData(image, 0, 0);
@@ -134,13 +135,4 @@ function horizontalSigma(grid) {
     }
   }
   return { ny, nx, values };
-}
-
-/** Return the RGB of `u` in [0, 1] on the ramp (clamped), interpolated between stops. */
-function rampColour(u) {
-  const s = Math.min(1, Math.max(0, u)) * (RAMP.length - 1);
-  const i = Math.min(RAMP.length - 2, Math.floor(s));
-  const f = s - i;
-  // c = (1 − f)·c_i + f·c_{i+1}
-  return RAMP[i].map((a, k) => Math.round((1 - f) * a + f * RAMP[i + 1][k]));
 }

@@ -3,6 +3,7 @@
 // uPlot (app/web/vendor) is a classic script loaded before this module: the global uPlot.
 
 import { ApiError } from "./api.js";
+import { rampColour } from "./ramp.js";
 
 // Few device-seconds pale yellow, many dark red (RGB stops, evenly spaced up to the top).
 const RAMP = [
@@ -104,7 +105,7 @@ export class AnalyticsView {
       row.forEach((v, c) => {
         // cells outside the outline, or never visited, stay transparent
         if (v === null || v <= 0) return;
-        image.data.set([...rampColour(v / (top || 1)), ALPHA], 4 * (r * nx + c));
+        image.data.set([...rampColour(RAMP, v / (top || 1)), ALPHA], 4 * (r * nx + c));
       }),
     );
     context.putImageData(image, 0, 0);
@@ -157,13 +158,4 @@ export class AnalyticsView {
 function localInput(ms) {
   const d = new Date(ms - new Date(ms).getTimezoneOffset() * 60_000);
   return d.toISOString().slice(0, 19);
-}
-
-/** Return the RGB of `u` in [0, 1] on the ramp (clamped), interpolated between stops. */
-function rampColour(u) {
-  const s = Math.min(1, Math.max(0, u)) * (RAMP.length - 1);
-  const i = Math.min(RAMP.length - 2, Math.floor(s));
-  const f = s - i;
-  // c = (1 − f)·c_i + f·c_{i+1}
-  return RAMP[i].map((a, k) => Math.round((1 - f) * a + f * RAMP[i + 1][k]));
 }
