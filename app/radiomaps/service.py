@@ -79,7 +79,7 @@ from app.sites.models import Site
 from app.sites.radio_ids import radio_id
 from app.sites.service import bump_map_version
 from app.surveys.models import SurveyRecord
-from app.surveys.service import count_surveys, survey_samples
+from app.surveys.service import count_surveys, survey_identity, survey_samples
 
 RADIO_MAP = RadioMapParams()
 CALIBRATION = CalibrationParams()
@@ -92,7 +92,9 @@ Progress = Callable[[float], None]
 class SurveyInput:
     """One stored survey reduced to what a build reads."""
 
-    survey_id: int
+    identity: str
+    """The survey's floor and a digest of its samples: what orders a build's walks, so
+    that the same surveys uploaded in any order build the same map."""
     floor_id: str
     waypoints: np.ndarray
     t: np.ndarray
@@ -169,7 +171,7 @@ def _survey_input(row: SurveyRecord) -> SurveyInput:
         age.append(reading_age(s))
     ble = samples.get("ble", ())
     return SurveyInput(
-        survey_id=row.id,
+        identity=survey_identity(row),
         floor_id=row.floor_id,
         waypoints=wp.reshape(-1, 3),
         t=np.array(t, dtype=np.int64),
@@ -199,13 +201,16 @@ def load_inputs(*, db: Session, site: Site, raster_cell: float) -> BuildInputs:
     rows = db.scalars(
         select(SurveyRecord).where(SurveyRecord.site_id == site.id).order_by(SurveyRecord.id)
     )
-    surveys = tuple(_survey_input(r) for r in rows if r.floor_id in loaded.floor_index)
-    return BuildInputs(site=loaded, surveys=surveys)
+    surveys = sorted(
+        (_survey_input(r) for r in rows if r.floor_id in loaded.floor_index),
+        key=lambda s: s.identity,
+    )
+    return BuildInputs(site=loaded, surveys=tuple(surveys))
 
 
-def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...], np.ndarray]:
+def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...]]:
     """Return the WiFi scans of every survey located on its waypoints, its BLE windows
-    located the same way, the transmitter ids, and the survey id of each walk number."""
+    located the same way, and the transmitter ids."""
     site = inputs.site
     map_ids = site.model.transmitters.ids
     heard = {i for s in inputs.surveys for i in (*s.ids, *s.ble[1])} - set(map_ids)
@@ -225,8 +230,7 @@ def _located_survey(inputs: BuildInputs) -> tuple[Survey, Survey, tuple[str, ...
             ble.append(
                 locate_scans(RssiReadings(at, beacons, rssi), s.waypoints, floor=floor, walk=walk)
             )
-    survey_ids = np.array([s.survey_id for s in inputs.surveys], dtype=np.int64)
-    return Survey.concat(wifi), Survey.concat(ble), tx_ids, survey_ids
+    return Survey.concat(wifi), Survey.concat(ble), tx_ids
 
 
 def _wifi_age_scores(inputs: BuildInputs, folds: int) -> dict[float, list[float]]:
@@ -235,7 +239,7 @@ def _wifi_age_scores(inputs: BuildInputs, folds: int) -> dict[float, list[float]
     by_age: dict[float, dict[int, float]] = {}
     for age in AGE_CANDIDATES_MS:
         fresh = replace(inputs, surveys=tuple(s.heard_within(age) for s in inputs.surveys))
-        survey, _, tx_ids, _ = _located_survey(fresh)
+        survey, _, tx_ids = _located_survey(fresh)
         by_age[float(age)] = walk_errors(survey, len(tx_ids), folds)[0]
     return paired_scores(by_age) if all(by_age.values()) else {}
 
@@ -283,7 +287,7 @@ def compute_build(
         else DEFAULT_MAX_AGE_MS
     )
     inputs = replace(inputs, surveys=tuple(s.heard_within(max_age) for s in inputs.surveys))
-    survey, beacons, tx_ids, _ = _located_survey(inputs)
+    survey, beacons, tx_ids = _located_survey(inputs)
     if survey.reading_rssi.size == 0 and beacons.reading_rssi.size == 0:
         raise Conflict(
             "the surveys hold no WiFi scan and no BLE reading within their waypoints' time span",
@@ -698,7 +702,7 @@ def _measured_walks(inputs: BuildInputs) -> list[WalkPdr]:
     """Return the PDR of every survey with inertial samples against its waypoints."""
     out = []
     for s in inputs.surveys:
-        walk = measure_walk(str(s.survey_id), s.floor_id, s.waypoints, s.imu, PdrParams())
+        walk = measure_walk(s.identity, s.floor_id, s.waypoints, s.imu, PdrParams())
         if walk is not None:
             out.append(walk)
     return out

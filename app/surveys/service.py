@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import zlib
 from typing import Any
@@ -45,6 +46,13 @@ def list_surveys(
     query = select(SurveyRecord).where(SurveyRecord.site_id == site_id).order_by(SurveyRecord.id)
     rows = list(db.scalars(query.limit(limit).offset(offset)))
     return rows, count_surveys(db=db, site_id=site_id)
+
+
+def survey_identity(survey: SurveyRecord) -> str:
+    """Return the survey's floor and the SHA-256 of its samples: the same recording has
+    the same identity whatever its upload order, device label or name."""
+    digest = hashlib.sha256(zlib.decompress(survey.body)).hexdigest()
+    return f"{survey.floor_id}/{digest}"
 
 
 def survey_samples(survey: SurveyRecord) -> dict[str, Any]:
