@@ -90,7 +90,8 @@ class SiteTuning:
     emission_weight : float
         Exponent tempering the HMM's per-scan likelihood of positions.
     floor_weight : float
-        Exponent tempering it when floors are weighed against each other.
+        Exponent tempering it when floors are weighed against each other
+        (0: the floors are the floor classifier's alone).
     accuracy_floor_m : float
         Added in quadrature to the radius (m): the floor under which the
         HMM's radius holds 68% of its errors on the replayed held-out walks

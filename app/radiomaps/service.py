@@ -429,8 +429,8 @@ def compute_build(
         _tuning_scores(
             validation,
             replays,
-            floor_replays.scores,
-            floor_replays.classifier_scores(tuning.floor_weight) if floors_chosen else {},
+            floor_replays.floor_scores(tuning.floor_classifier_weight) if floors_chosen else {},
+            floor_replays.classifier_scores if floors_chosen else {},
             smoothers,
             age_scores,
             knn_scores,
@@ -660,36 +660,44 @@ class FloorReplays:
         self.folds.append(slice(start, len(self.evidence)))
         self.floor_of_map.append(np.asarray(model.floors, dtype=np.int64))
 
-    def _scores(self, weight: int, classifier_weight: float) -> list[float]:
-        """Return every fold's pairs' shares of scans on a wrong floor under one setting."""
+    def _scores(self, weight: int | None, classifier_weight: float) -> list[float]:
+        """Return every fold's pairs' shares of scans on a wrong floor under one setting
+        (floor weight number ``weight``, None: the radio map's evidence left out)."""
         out: list[float] = []
         for fold, floors in zip(self.folds, self.floor_of_map, strict=True):
             out += pair_shares(self.evidence[fold], weight, classifier_weight, floors, self.params)
         return out
 
     @property
-    def scores(self) -> dict[float, list[float]]:
-        """Return the pairs' shares of scans on a wrong floor per floor weight, the radio
-        map's evidence alone."""
-        return {w: self._scores(k, 0.0) for k, w in enumerate(FLOOR_WEIGHT_CANDIDATES)}
+    def classifier_scores(self) -> dict[float, list[float]]:
+        """Return the pairs' shares per floor-classifier weight, the classifier alone."""
+        return {c: self._scores(None, c) for c in FLOOR_CLASSIFIER_WEIGHT_CANDIDATES}
 
-    def classifier_scores(self, floor_weight: float) -> dict[float, list[float]]:
-        """Return the pairs' shares per floor-classifier weight, under ``floor_weight``."""
-        k = FLOOR_WEIGHT_CANDIDATES.index(floor_weight)
-        return {c: self._scores(k, c) for c in FLOOR_CLASSIFIER_WEIGHT_CANDIDATES}
+    def floor_scores(self, classifier_weight: float) -> dict[float, list[float]]:
+        """Return the pairs' shares per floor weight (0: the classifier alone) with the
+        classifier at ``classifier_weight``."""
+        with_radio = {
+            w: self._scores(k, classifier_weight) for k, w in enumerate(FLOOR_WEIGHT_CANDIDATES)
+        }
+        return {0.0: self._scores(None, classifier_weight)} | with_radio
 
     def choose(self) -> tuple[float, float] | None:
-        """Return the floor weight, then the classifier weight under it, each as the
-        one-standard-error rule takes over the pairs' shares; None without pairs."""
+        """Return the floor weight and the classifier weight; None without pairs.
+
+        The classifier's weight first, on its own, then whether the radio map's
+        evidence should join it: a floor weight other than 0 only where it puts
+        measurably fewer scans on a wrong floor (the one-standard-error rule).
+        Where a floor is thinly surveyed, the radio map's evidence for it is
+        confidently wrong (hundreds of nats over a walk), which a classifier's
+        probabilities cannot outweigh.
+        """
         if not self.folds:
             return None
-        scores = self.scores
-        if not all(scores.values()):
+        by_classifier = self.classifier_scores
+        if not all(by_classifier.values()):
             return None
-        floor_weight = one_standard_error_choice(scores, self.params.floor_weight)
-        classifier = one_standard_error_choice(
-            self.classifier_scores(floor_weight), DEFAULT_FLOOR_CLASSIFIER_WEIGHT
-        )
+        classifier = one_standard_error_choice(by_classifier, DEFAULT_FLOOR_CLASSIFIER_WEIGHT)
+        floor_weight = one_standard_error_choice(self.floor_scores(classifier), 0.0)
         return floor_weight, classifier
 
 

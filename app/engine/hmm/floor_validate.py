@@ -28,12 +28,14 @@ from app.engine.samples import RssiReadings
 from app.engine.scans import group_scans
 from app.engine.wknn import unique_readings
 
-FLOOR_CLASSIFIER_WEIGHT_CANDIDATES = (0.0, 0.1, 0.2, 0.4, 0.8)
+FLOOR_CLASSIFIER_WEIGHT_CANDIDATES = (0.25, 0.5, 1.0, 2.0)
 """Tempers of the floor classifier's log-probabilities (``HmmParams.floor_classifier_weight``)
-a build replays held-out walks, joined in pairs across floors, with."""
+a build replays held-out walks, joined in pairs across floors, with, the radio map's floor
+evidence left out."""
 
-DEFAULT_FLOOR_CLASSIFIER_WEIGHT = 0.2
-"""The classifier weight the one-standard-error rule stays nearest to."""
+DEFAULT_FLOOR_CLASSIFIER_WEIGHT = 1.0
+"""The classifier weight the one-standard-error rule stays nearest to: its probabilities
+as fitted."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,27 +108,28 @@ def walk_evidence(
 
 def pair_shares(
     evidence: Sequence[WalkEvidence],
-    weight: int,
+    weight: int | None,
     classifier_weight: float,
     floor_of_map: np.ndarray,
     params: HmmParams,
 ) -> list[float]:
     """Return each joined pair's share of scans followed on a wrong floor.
 
-    The evidence is the radio map's under weight number ``weight`` plus
-    ``classifier_weight`` times the classifier's.
+    The evidence is the radio map's under weight number ``weight`` (None:
+    left out, a floor weight of 0) plus ``classifier_weight`` times the
+    classifier's.
     """
     shares = []
     truth = [e.floor for e in evidence]
+
+    def scan_evidence(e: WalkEvidence) -> np.ndarray:
+        # e = ln mean L^w + c ln p(f | scan)
+        radio = 0.0 if weight is None else e.marginals[weight]
+        return radio + classifier_weight * e.classified
+
     for i, j in floor_pairs(truth):
         a, b = evidence[i], evidence[j]
-        # e = ln mean L^w + c ln p(f | scan)
-        joined = np.concatenate(
-            [
-                a.marginals[weight] + classifier_weight * a.classified,
-                b.marginals[weight] + classifier_weight * b.classified,
-            ]
-        )
+        joined = np.concatenate([scan_evidence(a), scan_evidence(b)])
         expected = np.repeat([a.floor, b.floor], [a.classified.shape[0], b.classified.shape[0]])
         followed = floor_of_map[
             floor_sequence(joined, params.floor_switch_prob, params.floor_switch_posterior)
