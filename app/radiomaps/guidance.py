@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -61,7 +62,7 @@ def floor_figures(floor_id: str, grid: GuidanceGrid) -> dict[str, Any]:
     }
 
 
-def summary(grids: Mapping[str, GuidanceGrid], params: GuidanceParams = GUIDANCE) -> dict:
+def summary(grids: Mapping[str, GuidanceGrid], params: GuidanceParams = GUIDANCE) -> dict[str, Any]:
     """Return the build summary's ``guidance``: its parameters and each floor's figures."""
     return asdict(params) | {"floors": [floor_figures(f, g) for f, g in grids.items()]}
 
@@ -73,7 +74,7 @@ def replace_rows(*, db: Session, site_id: str, grids: Mapping[str, GuidanceGrid]
         db.add(SurveyGuidanceFloor(site_id=site_id, floor_id=floor_id, data=encode_guidance(grid)))
 
 
-def get_guidance(*, db: Session, site_id: str, floor_id: str) -> tuple[GuidanceGrid, Any]:
+def get_guidance(*, db: Session, site_id: str, floor_id: str) -> tuple[GuidanceGrid, datetime]:
     """Return the floor's stored guidance and the build's time; NotFound saying why not."""
     build = db.get(RadioMapBuild, site_id)
     if build is None:
@@ -97,7 +98,7 @@ def _grid(a: np.ndarray) -> list[list[float | None]]:
     return [[float(v) if np.isfinite(v) else None for v in row] for row in rounded]
 
 
-def to_json(site_id: str, floor_id: str, grid: GuidanceGrid, built_at: Any) -> dict[str, Any]:
+def to_json(site_id: str, floor_id: str, grid: GuidanceGrid, built_at: datetime) -> dict[str, Any]:
     """Return the API's guidance document: grids (ny, nx) from row 0 at y0, null where
     there is no value (outside the walkable area; unsurveyed for the expected error)."""
     return {
