@@ -282,6 +282,7 @@ EVALUATIONS = {
     "ilc": "app.evaluation.ilc.server",
     "ilc-methods": "app.evaluation.ilc.cli",
     "ilc-floor-change": "app.evaluation.ilc.floor_change",
+    "ilc-guidance": "app.evaluation.ilc.guidance",
 }
 
 

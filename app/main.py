@@ -28,6 +28,7 @@ from app.ops.router import router as ops_router
 from app.outputs.router import router as outputs_router
 from app.planning.router import router as planning_router
 from app.positions.router import router as positions_router
+from app.radiomaps.router import floor_router as guidance_router
 from app.radiomaps.router import router as radiomaps_router
 from app.sites.router import router as sites_router
 from app.state import AppState
@@ -115,6 +116,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         positions_router,
         surveys_router,
         radiomaps_router,
+        guidance_router,
         tracks_router,
         planning_router,
         outputs_router,

@@ -7,7 +7,13 @@ from app.floors.models import FloorRecord
 from app.keys.models import ApiKey
 from app.outputs.models import OutboxRow, Output
 from app.positions.models import PositionRecord
-from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
+from app.radiomaps.models import (
+    CalibratedTransmitter,
+    RadioMapBuild,
+    RadioMapFloor,
+    RadioMapJob,
+    SurveyGuidanceFloor,
+)
 from app.sites.models import Site
 from app.surveys.models import SurveyRecord
 from app.tracks.models import Track
@@ -26,6 +32,7 @@ __all__ = [
     "RadioMapFloor",
     "RadioMapJob",
     "Site",
+    "SurveyGuidanceFloor",
     "SurveyRecord",
     "Track",
     "ZoneEventRecord",

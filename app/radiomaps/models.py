@@ -1,4 +1,4 @@
-"""Built radio maps, calibrated transmitters and radio-map build jobs."""
+"""Built radio maps, their survey guidance, calibrated transmitters and radio-map build jobs."""
 
 from __future__ import annotations
 
@@ -51,6 +51,22 @@ class RadioMapFloor(Base):
     floor_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     n_points: Mapped[int] = mapped_column(Integer)
     transmitters: Mapped[list] = mapped_column(JSON)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class SurveyGuidanceFloor(Base):
+    """One floor's survey guidance from the latest build: ``data`` is the npz of its
+    expected-error grid (``app.radiomaps.codec.encode_guidance``)."""
+
+    __tablename__ = "survey_guidance_floors"
+    __table_args__ = (
+        ForeignKeyConstraint(
+            ["site_id", "floor_id"], ["floors.site_id", "floors.floor_id"], ondelete="CASCADE"
+        ),
+    )
+
+    site_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    floor_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
 

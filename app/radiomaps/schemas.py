@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Literal
 
 from pydantic import BaseModel
@@ -135,6 +136,66 @@ class TuningScores(BaseModel):
     knn_walk_error_m_by_k: dict[str, float | None] = {}
 
 
+class GuidanceParamsRead(BaseModel):
+    """The grid and smoothing of the survey guidance (``app.engine.survey_guidance``)."""
+
+    cell_m: float
+    """Grid cell side (m)."""
+    bandwidth_m: float
+    """Standard deviation of the Gaussian kernel weighing held-out scans (m)."""
+    reach_m: float
+    """Cells farther than this from every held-out scan are unsurveyed (m)."""
+    wrong_floor_m: float
+    """Error a scan located on a wrong floor counts as (m)."""
+    high_error_m: float
+    """Expected error above which a cell counts as needing more survey (m)."""
+
+
+class FloorGuidance(BaseModel):
+    """Where one floor's radio map is thin, in figures."""
+
+    floor_id: str
+    scans: int
+    """Held-out scans of the floor the guidance was smoothed from."""
+    walkable_cells: int
+    mean_expected_error_m: float | None
+    """Mean expected error over the walkable cells that were surveyed (m)."""
+    unsurveyed_share: float | None
+    """Share of the walkable cells farther than ``reach_m`` from every scan."""
+    high_error_share: float | None
+    """Share of the walkable cells whose expected error exceeds ``high_error_m``."""
+    to_survey_share: float | None
+    """Share unsurveyed or above ``high_error_m``: where to survey next."""
+
+
+class GuidanceSummary(GuidanceParamsRead):
+    """The survey guidance of a build: its parameters and each floor's figures."""
+
+    floors: list[FloorGuidance]
+
+
+class SurveyGuidance(BaseModel):
+    """A floor's expected positioning error, from the latest build's held-out scans.
+
+    Grids are (ny, nx) lists of rows, row 0 at ``origin[1]``; cell (r, c) spans
+    x0 + c·cell to x0 + (c+1)·cell. ``expected_error_m`` is null outside the
+    walkable area and where unsurveyed; ``distance_m`` (to the nearest held-out
+    scan) is null outside the walkable area and on a floor with no held-out scan.
+    """
+
+    site_id: str
+    floor_id: str
+    built_at: datetime
+    origin: list[float]
+    cell: float
+    shape: list[int]
+    params: GuidanceParamsRead
+    summary: FloorGuidance
+    walkable: list[list[bool]]
+    expected_error_m: list[list[float | None]]
+    distance_m: list[list[float | None]]
+
+
 class BuildSummary(BaseModel):
     """What a build produced; ``accuracy`` is null with fewer than two survey walks."""
 
@@ -151,6 +212,8 @@ class BuildSummary(BaseModel):
     accuracy: HeldOutAccuracy | None
     tuning: SiteTuningRead | None = None
     tuning_scores: TuningScores | None = None
+    guidance: GuidanceSummary | None = None
+    """Where the radio map is thin, per floor; null with fewer than two survey walks."""
     map_version: int | None = None
     elapsed_ms: float | None = None
 

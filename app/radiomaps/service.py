@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 import uuid
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -56,6 +56,7 @@ from app.engine.samples import ImuSamples, RssiReadings
 from app.engine.scan_knn import ScanKnnParams
 from app.engine.scan_knn_cv import choose_neighbours, fix_spread, paired_scores, walk_errors
 from app.engine.smoothing import SmootherParams
+from app.engine.survey_guidance import GuidanceGrid
 from app.engine.tuning import (
     EMISSION_WEIGHT_CANDIDATES,
     FIX_WEIGHT_CANDIDATES,
@@ -72,6 +73,7 @@ from app.engine.tuning import (
 from app.engine.wifi_age import AGE_CANDIDATES_MS, DEFAULT_MAX_AGE_MS
 from app.engine.wknn import WknnParams
 from app.ingest.arrays import imu_arrays, reading_age, wifi_times
+from app.radiomaps import guidance
 from app.radiomaps.codec import encode_map
 from app.radiomaps.models import CalibratedTransmitter, RadioMapBuild, RadioMapFloor, RadioMapJob
 from app.sites.assembly import LoadedSite, assemble_site
@@ -134,13 +136,15 @@ class BuildInputs:
 
 @dataclass(frozen=True, eq=False)
 class BuildResult:
-    """What a build stores: maps by floor id, fits, the transmitter ids and the summary."""
+    """What a build stores: maps by floor id, fits, the transmitter ids, the summary and
+    the survey guidance by floor id."""
 
     maps: dict[str, RadioMap]
     fits: list[TransmitterFit]
     tx_ids: tuple[str, ...]
     floor_ids: tuple[str, ...]
     summary: dict[str, Any]
+    guidance: dict[str, GuidanceGrid] = field(default_factory=dict)
 
 
 def check_buildable(*, db: Session, site: Site) -> None:
@@ -397,8 +401,10 @@ def compute_build(
         tuning = replace(defaults, accuracy_floor_m=floor)
     report(0.95)
     accuracy: dict[str, Any] | None = None
+    grids: dict[str, GuidanceGrid] = {}
     if validation is not None:
         held = validation.by_k[tuning.wknn_k]
+        grids = guidance.compute(survey, held, plans, site.floor_ids)
         accuracy = {
             "method": "wknn",
             "k": tuning.wknn_k,
@@ -435,10 +441,15 @@ def compute_build(
             age_scores,
             knn_scores,
         ),
-    )
+    ) | {"guidance": guidance.summary(grids) if grids else None}
     report(1.0)
     return BuildResult(
-        maps=maps, fits=fits, tx_ids=tx_ids, floor_ids=site.floor_ids, summary=summary
+        maps=maps,
+        fits=fits,
+        tx_ids=tx_ids,
+        floor_ids=site.floor_ids,
+        summary=summary,
+        guidance=grids,
     )
 
 
@@ -799,10 +810,12 @@ def _fit_row(fit: TransmitterFit, tx_ids: tuple[str, ...], floor_ids: tuple[str,
 
 
 def store_build(*, db: Session, site: Site, result: BuildResult) -> None:
-    """Replace the site's stored radio maps, fits and summary, and bump its map version."""
+    """Replace the site's stored radio maps, fits, summary and survey guidance, and bump its
+    map version."""
     db.execute(delete(RadioMapFloor).where(RadioMapFloor.site_id == site.id))
     db.execute(delete(CalibratedTransmitter).where(CalibratedTransmitter.site_id == site.id))
     db.execute(delete(RadioMapBuild).where(RadioMapBuild.site_id == site.id))
+    guidance.replace_rows(db=db, site_id=site.id, grids=result.guidance)
     db.flush()
     for floor_id, m in result.maps.items():
         db.add(

@@ -2,38 +2,39 @@
 // each cell of the floor (docs/api.md, "Planning"), drawn as a heatmap under the plan.
 
 import { ApiError } from "./api.js";
-import { rampColour } from "./ramp.js";
-
-// Small σ green, large σ red (RGB stops, evenly spaced from 0 to the scale's top).
-const RAMP = [
-  [26, 152, 80],
-  [145, 207, 96],
-  [254, 224, 139],
-  [252, 141, 89],
-  [215, 48, 39],
-];
-const ALPHA = 165;
-const UNOBSERVABLE = [71, 85, 105, 110];
+import { ERROR_ALPHA, ERROR_RAMP, NO_VALUE, rampColour, rampGradient } from "./ramp.js";
 
 export class AccuracyOverlay {
-  constructor(api, plan, els) {
+  constructor(api, plan, els, { onShow } = {}) {
     this.api = api;
     this.plan = plan;
     this.els = els;
     this.siteId = null;
     this.floorId = null;
     this.request = 0;
+    // before the refresh below: whatever else shared the layer is turned off first
+    els.toggle.addEventListener("change", () => {
+      if (els.toggle.checked) onShow?.();
+    });
     for (const input of [els.toggle, els.tech, els.z, els.cell]) {
       input.addEventListener("change", () => this.refresh());
     }
-    const stops = RAMP.map((c) => `rgb(${c})`).join(",");
-    els.legend.style.background = `linear-gradient(to right, ${stops})`;
+    els.legend.style.background = rampGradient(ERROR_RAMP);
   }
 
   setFloor(siteId, floorId) {
     this.siteId = siteId;
     this.floorId = floorId;
     this.refresh();
+  }
+
+  /** Untick and forget the overlay without touching the layer another overlay now draws. */
+  turnOff() {
+    this.request++;
+    this.els.toggle.checked = false;
+    this.els.options.hidden = true;
+    this.els.scale.hidden = true;
+    this.#status("", "off");
   }
 
   async refresh() {
@@ -81,7 +82,9 @@ export class AccuracyOverlay {
     const context = canvas.getContext("2d");
     const image = context.createImageData(field.nx, field.ny);
     field.values.forEach((sigma, i) => {
-      const rgba = Number.isFinite(sigma) ? [...rampColour(RAMP, sigma / top), ALPHA] : UNOBSERVABLE;
+      const rgba = Number.isFinite(sigma)
+        ? [...rampColour(ERROR_RAMP, sigma / top), ERROR_ALPHA]
+        : NO_VALUE;
       image.data.set(rgba, 4 * i);
     });
     context.putImageData(image, 0, 0);

@@ -97,6 +97,13 @@ export class Api {
     );
   }
 
+  surveyGuidance(siteId, floorId) {
+    return this.request(
+      "GET",
+      `/v1/sites/${enc(siteId)}/floors/${enc(floorId)}/survey-guidance?format=json`,
+    );
+  }
+
   heatmap(siteId, floorId, { from, to, cell }) {
     const query = new URLSearchParams({ from, to, cell: String(cell) });
     return this.request(

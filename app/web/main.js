@@ -1,11 +1,12 @@
 // The dashboard's entry point: sign-in, site and floor selection, tabs, and the wiring
-// between the plan and the live, replay, admin and accuracy views.
+// between the plan and the live, replay, admin, accuracy and survey guidance views.
 
 import { AccuracyOverlay } from "./accuracy.js";
 import { AdminView } from "./admin.js";
 import { AnalyticsView } from "./analytics.js";
 import { Api, ApiError, forgetKey, storedKey, storeKey } from "./api.js";
 import { METHOD_SHAPES, shapeIcon } from "./devices.js";
+import { GuidanceOverlay } from "./guidance.js";
 import { LiveView } from "./live.js";
 import { PlanView } from "./plan.js";
 import { ReplayView } from "./replay.js";
@@ -46,17 +47,35 @@ class Dashboard {
       time: $("replay-time"),
       where: $("replay-where"),
     });
-    this.accuracy = new AccuracyOverlay(api, this.plan, {
-      toggle: $("accuracy-toggle"),
-      options: $("accuracy-options"),
-      tech: $("accuracy-tech"),
-      z: $("accuracy-z"),
-      cell: $("accuracy-cell"),
-      status: $("accuracy-status"),
-      scale: $("accuracy-scale"),
-      legend: $("accuracy-ramp"),
-      scaleTop: $("accuracy-top"),
-    });
+    // the accuracy and survey guidance overlays share the plan's heatmap layer: one at a time
+    this.accuracy = new AccuracyOverlay(
+      api,
+      this.plan,
+      {
+        toggle: $("accuracy-toggle"),
+        options: $("accuracy-options"),
+        tech: $("accuracy-tech"),
+        z: $("accuracy-z"),
+        cell: $("accuracy-cell"),
+        status: $("accuracy-status"),
+        scale: $("accuracy-scale"),
+        legend: $("accuracy-ramp"),
+        scaleTop: $("accuracy-top"),
+      },
+      { onShow: () => this.guidance.turnOff() },
+    );
+    this.guidance = new GuidanceOverlay(
+      api,
+      this.plan,
+      {
+        toggle: $("guidance-toggle"),
+        status: $("guidance-status"),
+        scale: $("guidance-scale"),
+        legend: $("guidance-ramp"),
+        scaleTop: $("guidance-top"),
+      },
+      { onShow: () => this.accuracy.turnOff() },
+    );
     this.analytics = new AnalyticsView(api, this.plan, {
       form: $("analytics-form"),
       from: $("analytics-from"),
@@ -181,6 +200,7 @@ class Dashboard {
     this.live.setFloor(floorId);
     this.replay.setFloor(floorId);
     this.accuracy.setFloor(this.siteId, floorId);
+    this.guidance.setFloor(this.siteId, floorId);
   }
 
   /** Show on the plan why a selection could not be loaded. */

@@ -154,6 +154,9 @@ MATRIX: dict[tuple[str, str], Entry] = {
     ("GET", "/v1/sites/{site_id}/floors/{floor_id}/accuracy"): Entry(
         "/v1/sites/{b}/floors/G/accuracy?cell=2"
     ),
+    ("GET", "/v1/sites/{site_id}/floors/{floor_id}/survey-guidance"): Entry(
+        "/v1/sites/{b}/floors/G/survey-guidance", admin=404
+    ),
     ("GET", "/v1/sites/{site_id}/floors/{floor_id}/heatmap"): Entry(
         "/v1/sites/{b}/floors/G/heatmap?from=0&to=86400000"
     ),
