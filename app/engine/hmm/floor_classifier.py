@@ -21,10 +21,6 @@ thick one), gives ln p(floor | scan). It is fitted by L-BFGS from a zero
 start on scans in the order given, so the same survey gives the same model.
 Its log-probabilities, tempered, are one scan's floor evidence in the HMM's
 floor filter (``app.engine.hmm.floor_filter``).
-
-On site1 surveyed with 20 walks a floor, 96.8% of the held-out walks' scans
-had their floor most probable under these features against 92.8% under the
-levels of each access point.
 """
 
 from __future__ import annotations
