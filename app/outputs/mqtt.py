@@ -50,6 +50,7 @@ class MqttSender:
         home_assistant: bool,
         client_id: str,
         timeout_s: float,
+        batch_max: int,
     ) -> None:
         parts = urlsplit(url)
         self.hostname = parts.hostname or "localhost"
@@ -61,6 +62,7 @@ class MqttSender:
         self.home_assistant = home_assistant
         self.client_id = client_id
         self.timeout_s = timeout_s
+        self.batch_max = batch_max
         self.client: aiomqtt.Client | None = None
         self.announced: set[tuple[str, str]] = set()
         """Devices whose Home Assistant discovery this connection has published."""
@@ -82,17 +84,21 @@ class MqttSender:
                 raise DeliveryError(
                     f"cannot connect to {self.hostname}:{self.port}: {exc}"
                 ) from exc
+            # a batch's publishes are awaited together (at most three a row, with a discovery):
+            # that many waiting is the design, not the backlog aiomqtt warns of
+            client.pending_calls_threshold = 3 * self.batch_max
             self.client = client
             self.announced.clear()
         return self.client
 
-    def topics(self, row: OutboxRow) -> list[tuple[str, str, bool]]:
-        """Return the (topic, payload, retained) publications of one outbox row."""
+    def topics(self, row: OutboxRow, *, announce: bool) -> list[tuple[str, str, bool]]:
+        """Return the (topic, payload, retained) publications of one outbox row, first the
+        device's Home Assistant discovery when ``announce``."""
         message = json.loads(row.payload)
         base = f"{self.prefix}/{level(row.site_id)}"
         device = f"{base}/devices/{level(row.device_id)}"
         found: list[tuple[str, str, bool]] = []
-        if self.home_assistant and (row.site_id, row.device_id) not in self.announced:
+        if announce:
             found.append(self._discovery(row.site_id, row.device_id, device))
         if row.kind == "position":
             found.append((f"{device}/position", row.payload, False))
@@ -123,7 +129,14 @@ class MqttSender:
     async def send(self, rows: list[OutboxRow]) -> None:
         """Publish the rows at QoS 1 and return once the broker acknowledged every one."""
         client = await self._connected()
-        publications = [p for row in rows for p in self.topics(row)]
+        publications: list[tuple[str, str, bool]] = []
+        devices: set[tuple[str, str]] = set()
+        for row in rows:
+            device = (row.site_id, row.device_id)
+            # announced once a connection: before the device's first message in it
+            announce = self.home_assistant and not (device in self.announced or device in devices)
+            devices.add(device)
+            publications.extend(self.topics(row, announce=announce))
         try:
             await asyncio.gather(
                 *(
@@ -134,7 +147,7 @@ class MqttSender:
         except (aiomqtt.MqttError, TimeoutError) as exc:
             await self.close()
             raise DeliveryError(f"publish to {self.hostname}:{self.port} failed: {exc}") from exc
-        self.announced.update((row.site_id, row.device_id) for row in rows)
+        self.announced |= devices
 
     async def close(self) -> None:
         """Disconnect (a lost connection is dropped without waiting)."""
