@@ -7,11 +7,13 @@ scans on the demo floor) send one batch a second through bulk ingest (100 device
 body, ``?wait=true``) for ``--seconds`` after ``--warmup``: the answers' p50 and p99 from
 each body's send. Then the same devices post closed loop, each connection of
 ``--connections`` sending its next body once the last is answered: the saturation rate in
-device updates per second and its answer p99. With the output, a subscriber in a process
-of its own stamps each position's receipt during the 1 Hz run: the delivery lag runs from
-the position's time (the devices stamp their scans with the wall clock as they send them)
-to its receipt. Prints a Markdown table and the saturation with the output as a share of
-the one without:
+device updates per second and its answer p99. During the 1 Hz run a listener in a process
+of its own stamps each position's receipt on the positions WebSocket and, with the output,
+from a subscriber to the broker: the lag runs from the position's time (the devices stamp
+their scans with the wall clock as they send them) to its receipt, so the WebSocket's is
+the engine's own and the MQTT one's less that is what the output adds. ``--repeats``
+alternates the two servers; prints a Markdown table of every run and the best saturation
+with the output as a share of the best without:
 
     python -m bench.outputs --seconds 30
 """
@@ -48,28 +50,56 @@ BUDGET = 0.20
 """Most of ingest's saturation rate an output may cost."""
 
 
-def subscriber(broker: str, topic: str, ready: Event, stop: Event, out: Pipe) -> None:
-    """Subscribe to ``topic`` (QoS 1) until ``stop``; send back each position's receipt
-    (epoch ms) and lag (ms from its ``t`` to its receipt)."""
+def listener(ws_url: str, broker: str | None, topic: str, ready: Event, stop: Event,
+             out: Pipe) -> None:  # fmt: skip
+    """Until ``stop``, stamp each position arriving on the positions WebSocket and, given a
+    ``broker``, on the MQTT ``topic`` (QoS 1); send back both lists of (receipt epoch ms,
+    lag ms from the position's ``t``)."""
+    import threading
+
     import paho.mqtt.client as mqtt
+    from websockets.sync.client import connect
 
-    lags: list[tuple[float, float]] = []
+    socket_lags: list[tuple[float, float]] = []
+    mqtt_lags: list[tuple[float, float]] = []
 
-    def received(client: object, userdata: object, message: mqtt.MQTTMessage) -> None:
+    def stamp(into: list[tuple[float, float]], raw: bytes | str) -> None:
         now = time.time() * 1000
-        lags.append((now, now - json.loads(message.payload)["t"]))
+        message = json.loads(raw)
+        if message.get("type") == "position":
+            into.append((now, now - message["t"]))
 
-    parts = urlsplit(broker)
-    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-    client.on_message = received
-    client.on_subscribe = lambda *args: ready.set()
-    client.connect(parts.hostname or "127.0.0.1", parts.port or 1883)
-    client.subscribe(topic, qos=1)
-    client.loop_start()
+    def watch() -> None:
+        with connect(ws_url) as ws:
+            subscribed.set()
+            while not stop.is_set():
+                try:
+                    stamp(socket_lags, ws.recv(timeout=0.5))
+                except TimeoutError:
+                    continue
+
+    subscribed = threading.Event()
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    client = None
+    if broker is not None:
+        parts = urlsplit(broker)
+        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+        client.on_message = lambda c, u, m: stamp(mqtt_lags, m.payload)
+        confirmed = threading.Event()
+        client.on_subscribe = lambda *args: confirmed.set()
+        client.connect(parts.hostname or "127.0.0.1", parts.port or 1883)
+        client.subscribe(topic, qos=1)
+        client.loop_start()
+        confirmed.wait(30)
+    subscribed.wait(30)
+    ready.set()
     stop.wait()
-    client.loop_stop()
-    client.disconnect()
-    out.send(lags)
+    if client is not None:
+        client.loop_stop()
+        client.disconnect()
+    watcher.join(5)
+    out.send((socket_lags, mqtt_lags))
 
 
 @contextmanager
@@ -202,7 +232,6 @@ def run(args: argparse.Namespace, with_output: bool) -> dict[str, object]:
     with serve(args.port, args.workers, args.database_url) as (url, pid):
         demo.install(url, ADMIN)
         prefix = f"bench{uuid.uuid4().hex[:8]}"
-        lag_pipe, stop, listener = None, None, None
         if with_output:
             body = {"kind": "mqtt", "url": args.broker, "topic_prefix": prefix}
             put = httpx.put(
@@ -211,16 +240,18 @@ def run(args: argparse.Namespace, with_output: bool) -> dict[str, object]:
                 headers={"Authorization": f"Bearer {ADMIN}"},
             )
             put.raise_for_status()
-            ctx = mp.get_context("spawn")
-            ready, stop = ctx.Event(), ctx.Event()
-            lag_pipe, sender = ctx.Pipe(duplex=False)
-            topic = f"{prefix}/{demo.SITE_ID}/devices/+/position"
-            listener = ctx.Process(
-                target=subscriber, args=(args.broker, topic, ready, stop, sender)
-            )
-            listener.start()
-            if not ready.wait(30):
-                raise RuntimeError(f"no subscription confirmed by {args.broker}")
+        ctx = mp.get_context("spawn")
+        ready, stop = ctx.Event(), ctx.Event()
+        lag_pipe, sender = ctx.Pipe(duplex=False)
+        ws_url = f"ws{url.removeprefix('http')}/v1/ws/positions?site_id={demo.SITE_ID}&key={ADMIN}"
+        topic = f"{prefix}/{demo.SITE_ID}/devices/+/position"
+        watching = ctx.Process(
+            target=listener,
+            args=(ws_url, args.broker if with_output else None, topic, ready, stop, sender),
+        )
+        watching.start()
+        if not ready.wait(60):
+            raise RuntimeError("the WebSocket or the broker did not take the subscription")
         asyncio.run(_until_built(url, ADMIN))
         fleet = Fleet(args.devices, f"out-{uuid.uuid4().hex[:6]}", 0)
         pids = [pid, *_children(pid)]
@@ -229,12 +260,12 @@ def run(args: argparse.Namespace, with_output: bool) -> dict[str, object]:
         begin_ms = (time.time() + args.warmup) * 1000
         answers, steps = asyncio.run(paced(url, fleet, args.warmup + args.seconds))
         at_rate = answers.between(begin, begin + args.seconds)
-        lags = np.array([])
-        if lag_pipe is not None and stop is not None and listener is not None:
-            time.sleep(2.0)  # the last second's positions on their way
-            stop.set()
-            lags = np.array([lag for at, lag in lag_pipe.recv() if at >= begin_ms])
-            listener.join(10)
+        time.sleep(2.0)  # the last second's positions on their way
+        stop.set()
+        socket_lags, mqtt_lags = (
+            np.array([lag for at, lag in lags if at >= begin_ms]) for lags in lag_pipe.recv()
+        )
+        watching.join(10)
 
         cpu0 = _cpu_seconds(pids[:1]), _cpu_seconds(pids[1:])
         wall0 = time.monotonic()
@@ -258,8 +289,10 @@ def run(args: argparse.Namespace, with_output: bool) -> dict[str, object]:
         "sat. p99 ms": full.percentile(99),
         "API CPU %": api_cpu,
         "workers CPU %": worker_cpu,
-        "lag p50 ms": pct(lags, 50),
-        "lag p99 ms": pct(lags, 99),
+        "WS lag p50 ms": pct(socket_lags, 50),
+        "WS lag p99 ms": pct(socket_lags, 99),
+        "MQTT lag p50 ms": pct(mqtt_lags, 50),
+        "MQTT lag p99 ms": pct(mqtt_lags, 99),
         "delivered": int(delivered),
         "pending after": int(pending),
     }
@@ -297,11 +330,12 @@ def main() -> None:
         print("| " + " | ".join(_cell(v) for v in row.values()) + " |")
 
     def saturation(with_output: bool) -> float:
-        return float(np.median([r["saturation upd/s"] for r in rows[with_output::2]]))
+        # best of the repeats: what else runs on the machine only ever lowers a run's rate
+        return max(float(r["saturation upd/s"]) for r in rows[with_output::2])  # type: ignore[arg-type]
 
     share = saturation(True) / saturation(False)
     print(
-        f"\nsaturation with the output (median of {args.repeats}): {share:.1%} of without "
+        f"\nsaturation with the output (best of {args.repeats} each): {share:.1%} of without "
         f"(within the {BUDGET:.0%} budget: {'yes' if share >= 1 - BUDGET else 'no'})"
     )
 
