@@ -141,10 +141,11 @@ class Fleet:
         f = (s - cumulative[j - 1]) / ((cumulative[j] - cumulative[j - 1]) or 1.0)
         return x0 + f * (x1 - x0), y0 + f * (y1 - y0)
 
-    def body(self, i: int, k: int) -> str:
-        """Return device i's ingest body for its k-th second: one BLE scan."""
+    def body(self, i: int, k: int, t: int | None = None) -> str:
+        """Return device i's ingest body for its k-th second: one BLE scan, at ``t`` (ms;
+        by default ``k`` seconds after the fleet's ``t0``)."""
         x, y = self._at(i, k)
-        t = self.t0 + 1000 * k
+        t = self.t0 + 1000 * k if t is None else t
         gauss = self.rngs[i].gauss
         readings = []
         for bx, by, a, b, sigma, beacon in self.beacons:

@@ -1,7 +1,7 @@
 """The documentation stays true to the code: every route of the app's OpenAPI document is in
 docs/api.md, every setting in docs/operations.md, every relative link resolves, every table
-of figures names a command that exists and takes its options, and nothing points outside
-the repository."""
+of figures names a command that exists and takes its options, the README's webhook check
+verifies what Locus signs, and nothing points outside the repository."""
 
 from __future__ import annotations
 
@@ -92,3 +92,22 @@ def test_nothing_points_outside_the_repository() -> None:
         if outside.search(line)
     ]
     assert hits == []
+
+
+def test_the_readme_webhook_check_accepts_what_locus_signs_and_nothing_else() -> None:
+    from app.outputs.signing import headers, signing_key
+
+    section = (ROOT / "README.md").read_text().split("\n## Positions to MQTT and webhooks\n")[1]
+    (snippet,) = re.findall(r"```python\n(.*?)```", section.split("\n## ", 1)[0], flags=re.S)
+    assert len([line for line in snippet.splitlines()[2:] if line.strip()]) == 5
+    scope: dict[str, object] = {}
+    exec(snippet, scope)  # noqa: S102 (the README's own code)
+    verify = scope["verify"]
+    secret = re.search(r'"secret": "(whsec_[^"]+)"', section).group(1)  # type: ignore[union-attr]
+    body = b'{"type":"zone","event":"enter","zone":"Lab","device_id":"tag-1","site_id":"hq"}'
+    signed = headers(signing_key(secret), "msg_42", 1_700_000_000, body)
+    assert verify(secret, signed, body)  # type: ignore[operator]
+    assert not verify(secret, signed, body.replace(b"enter", b"exit"))  # type: ignore[operator]
+    assert not verify(secret, signed | {"webhook-id": "msg_43"}, body)  # type: ignore[operator]
+    other = "whsec_" + "QUJD" * 8
+    assert not verify(other, signed, body)  # type: ignore[operator]

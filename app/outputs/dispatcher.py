@@ -137,7 +137,7 @@ class Dispatcher:
                 self.tasks[key] = (output.updated_at, task)
             self.metrics.output_pending.labels(*key).set(pending.get(key, 0))
 
-    def _sender(self, output: Output) -> Sender:
+    def _sender(self, output: Output, batch_max: int) -> Sender:
         opts = options(output)
         timeout = self.settings.output_timeout_s
         if output.kind == "mqtt":
@@ -149,6 +149,7 @@ class Dispatcher:
                 home_assistant=bool(opts.get("home_assistant")),
                 client_id=f"locus-{output.site_id}-{output.id}"[:64],
                 timeout_s=timeout,
+                batch_max=batch_max,
             )
         return WebhookSender(url=output.url, secret=output.secret or "", timeout_s=timeout)
 
@@ -161,7 +162,7 @@ class Dispatcher:
             1, min(self.settings.output_batch_max, opts.get("batch_max") or 10**9, int(rate))
         )
         keep = output.kind == "webhook"
-        sender = self._sender(output)
+        sender = self._sender(output, limit)
         bucket = RateLimit(rate)
         rng = random.Random(f"{output.site_id}/{output.id}")
         failures = 0

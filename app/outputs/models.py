@@ -53,11 +53,15 @@ class OutboxRow(Base):
     ``stored_at`` is epoch ms of the write (the retention bound counts from
     it); ``batch`` is the id of the first row of the webhook batch this row was
     first sent in, so that a retry sends the same batch under the same
-    ``webhook-id``.
+    ``webhook-id``. Ids are never reused (AUTOINCREMENT on SQLite), so no later
+    batch gets an id already sent.
     """
 
     __tablename__ = "outbox"
-    __table_args__ = (Index("ix_outbox_output", "site_id", "output_id", "id"),)
+    __table_args__ = (
+        Index("ix_outbox_output", "site_id", "output_id", "id"),
+        {"sqlite_autoincrement": True},
+    )
 
     id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
     site_id: Mapped[str] = mapped_column(String(64))

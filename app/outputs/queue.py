@@ -19,6 +19,10 @@ from app.outputs.models import OutboxRow, Output
 
 OutputKey = tuple[str, str]
 """(site id, output id)."""
+UNCHANGED = {"updated_at": Output.updated_at}
+"""Values that keep an output's ``updated_at`` through the delivery's bookkeeping: it says
+when the configuration changed, and the dispatcher restarts an output's delivery when it
+does (a lease renewal or an acknowledgement moving it would cut every send short)."""
 
 
 def claim(db: Session, *, node: str, now: datetime, lease_s: float) -> list[Output]:
@@ -32,7 +36,7 @@ def claim(db: Session, *, node: str, now: datetime, lease_s: float) -> list[Outp
                 Output.claimed_until < now,
             )
         )
-        .values(claimed_by=node, claimed_until=now + timedelta(seconds=lease_s))
+        .values(claimed_by=node, claimed_until=now + timedelta(seconds=lease_s), **UNCHANGED)
         .execution_options(synchronize_session=False)
     )
     return list(db.scalars(select(Output).where(Output.claimed_by == node)))
@@ -43,7 +47,7 @@ def release(db: Session, *, node: str) -> None:
     db.execute(
         update(Output)
         .where(Output.claimed_by == node)
-        .values(claimed_by=None, claimed_until=None)
+        .values(claimed_by=None, claimed_until=None, **UNCHANGED)
         .execution_options(synchronize_session=False)
     )
 
@@ -85,7 +89,7 @@ def acknowledge(db: Session, *, key: OutputKey, ids: list[int], now: datetime) -
     db.execute(
         update(Output)
         .where(Output.site_id == key[0], Output.id == key[1])
-        .values(delivered=Output.delivered + len(ids), last_ok_at=now, last_error=None)
+        .values(delivered=Output.delivered + len(ids), last_ok_at=now, last_error=None, **UNCHANGED)
         .execution_options(synchronize_session=False)
     )
 
@@ -99,7 +103,7 @@ def record_failure(db: Session, *, key: OutputKey, error: str, stored_before: in
     db.execute(
         update(Output)
         .where(Output.site_id == key[0], Output.id == key[1])
-        .values(failed=Output.failed + int(expired), last_error=error[:500])
+        .values(failed=Output.failed + int(expired), last_error=error[:500], **UNCHANGED)
         .execution_options(synchronize_session=False)
     )
     return int(expired)

@@ -118,6 +118,12 @@ export class Api {
     return this.request("GET", `/v1/sites/${enc(siteId)}/zones/${enc(zone)}/occupancy?${query}`);
   }
 
+  /** Return the site's outputs with their delivery status (first page of up to 100). */
+  async outputs(siteId) {
+    const page = await this.request("GET", `/v1/sites/${enc(siteId)}/outputs?limit=100`);
+    return page.items;
+  }
+
   /** Return a site's device's positions in [from, to] (ms), following next_from up to `cap` items. */
   async history(siteId, deviceId, from, to, { pageSize = 1000, cap = 50_000 } = {}) {
     const items = [];

@@ -3,6 +3,7 @@
 
 import { AccuracyOverlay } from "./accuracy.js";
 import { AdminView } from "./admin.js";
+import { OutputsView } from "./outputs.js";
 import { AnalyticsView } from "./analytics.js";
 import { Api, ApiError, forgetKey, storedKey, storeKey } from "./api.js";
 import { METHOD_SHAPES, shapeIcon } from "./devices.js";
@@ -107,6 +108,11 @@ class Dashboard {
         floorStored: (id) => this.#shown(this.selectSite(this.siteId, id)),
       },
     );
+    this.outputs = new OutputsView(
+      api,
+      { list: $("outputs"), status: $("outputs-status"), refresh: $("outputs-refresh") },
+      () => this.siteId,
+    );
     $("site").addEventListener("change", (e) => this.#shown(this.selectSite(e.target.value)));
     $("floor").addEventListener("change", (e) => this.#shown(this.selectFloor(e.target.value)));
     $("zoom-in").addEventListener("click", () => this.plan.zoomAt(1.5));
@@ -135,6 +141,7 @@ class Dashboard {
     this.replay.setVisible(name === "replay");
     if (name === "replay") this.replay.defaultRange();
     this.analytics.setVisible(name === "analytics");
+    this.outputs.setVisible(name === "admin");
     if (name === "analytics") this.analytics.defaultRange();
   }
 
@@ -157,6 +164,7 @@ class Dashboard {
     $("site").value = siteId ?? "";
     this.live.setSite(siteId);
     this.replay.setSite(siteId);
+    this.outputs.siteChanged();
     const floors = siteId ? await this.api.floors(siteId) : [];
     if (selection !== this.selection) return;
     $("floor").replaceChildren(

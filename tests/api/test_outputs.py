@@ -1,98 +1,47 @@
 """Outputs: validation and secrets, and delivery to a real webhook receiver and the
-machine's real Mosquitto (skipped, saying so, where no broker answers on 127.0.0.1:1883)."""
+machine's real Mosquitto (skipped, saying so, where no broker answers on 127.0.0.1:1883):
+signatures and retries, Home Assistant discovery, a per-output rate limit, batches for a
+slow receiver."""
 
 from __future__ import annotations
 
-import base64
-import hashlib
-import hmac
 import json
-import socket
-import threading
 import time
-from collections.abc import Callable, Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from collections.abc import Iterator
 from typing import Any
 
-import paho.mqtt.client as mqtt
 import pytest
 from fastapi.testclient import TestClient
 
+from app.core.config import Settings
+from tests.receivers import SECRET, Receiver, Subscriber, broker_answers, until, valid_signature
+
 T0 = 1_700_000_000_000
-SECRET = "whsec_" + base64.b64encode(b"0123456789abcdef0123456789abcdef").decode()
+needs_broker = pytest.mark.skipif(
+    not broker_answers(), reason="no MQTT broker answers on 127.0.0.1:1883"
+)
 
 
-def walk(site_id: str, device: str) -> dict[str, Any]:
+def walk(site_id: str, device: str, t0: int = T0) -> dict[str, Any]:
     """A tag walking east along y = 4 through the Lab zone (12 <= x <= 16) and out."""
     fixes = [
-        {"t": T0 + 200 * k, "x": 10.5 + 0.25 * k, "y": 4.0, "floor_id": "G", "std": 0.1}
+        {"t": t0 + 200 * k, "x": 10.5 + 0.25 * k, "y": 4.0, "floor_id": "G", "std": 0.1}
         for k in range(38)
     ]
     return {"device_id": device, "site_id": site_id, "uwb_fix": fixes}
 
 
-def until(condition: Callable[[], Any], timeout: float = 30.0) -> Any:
-    """Poll ``condition`` until it is truthy; fail at the deadline."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError("condition not met before the deadline")
-
-
-class Receiver:
-    """A real HTTP server on a free loopback port that records every POST; it answers 503
-    until ``refuse_until`` (monotonic seconds)."""
-
-    def __init__(self) -> None:
-        self.requests: list[dict[str, Any]] = []
-        self.refuse_until = 0.0
-        receiver = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 (the stdlib's name)
-                body = self.rfile.read(int(self.headers["content-length"]))
-                status = 503 if time.monotonic() < receiver.refuse_until else 200
-                receiver.requests.append(
-                    {"headers": dict(self.headers.items()), "body": body, "status": status}
-                )
-                self.send_response(status)
-                self.send_header("content-length", "0")
-                self.end_headers()
-
-            def log_message(self, *args: Any) -> None:
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def accepted(self) -> list[Any]:
-        """Return every message of every acknowledged POST, in arrival order."""
-        out: list[Any] = []
-        for r in self.requests:
-            if r["status"] == 200:
-                doc = json.loads(r["body"])
-                out.extend(doc if isinstance(doc, list) else [doc])
-        return out
+def after_refresh(settings: Settings) -> None:
+    """Wait until the workers have read the site's outputs again: an output gets what is
+    stored from at most ``output_refresh_s`` after its creation."""
+    time.sleep(settings.output_refresh_s + 0.5)
 
 
 @pytest.fixture
 def receiver() -> Iterator[Receiver]:
     server = Receiver()
     yield server
-    server.server.shutdown()
-
-
-def valid_signature(request: dict[str, Any], secret: str) -> bool:
-    """Check a request by the Standard Webhooks formula, independently of Locus's code."""
-    h = {k.lower(): v for k, v in request["headers"].items()}
-    key = base64.b64decode(secret.removeprefix("whsec_"))
-    signed = f"{h['webhook-id']}.{h['webhook-timestamp']}.".encode() + request["body"]
-    expected = base64.b64encode(hmac.new(key, signed, hashlib.sha256).digest()).decode()
-    return h["webhook-signature"] == f"v1,{expected}"
+    server.close()
 
 
 def test_bad_outputs_get_422_naming_the_fault_and_change_nothing(
@@ -128,13 +77,34 @@ def test_secrets_are_never_returned(client: TestClient, admin: dict, site_id: st
     assert client.get(f"/v1/sites/{site_id}/outputs/m", headers=admin).status_code == 404
 
 
+def status_of(client: TestClient, admin: dict, site_id: str, output_id: str) -> dict[str, Any]:
+    """Return the output's delivery status."""
+    r = client.get(f"/v1/sites/{site_id}/outputs/{output_id}", headers=admin)
+    assert r.status_code == 200, r.text
+    return dict(r.json()["status"])
+
+
+def drained(client: TestClient, admin: dict, site_id: str, output_id: str) -> dict[str, Any]:
+    """Wait until nothing waits for the output; return its status."""
+    return until(
+        lambda: (s := status_of(client, admin, site_id, output_id))["pending"] == 0 and s,
+        what=f"output {output_id} drained",
+    )
+
+
+def stored_positions(client: TestClient, admin: dict, site_id: str, device: str) -> list[int]:
+    """Return the times of the device's stored positions, ascending."""
+    url = f"/v1/sites/{site_id}/devices/{device}/positions?limit=1000"
+    return [p["t"] for p in client.get(url, headers=admin).json()["items"]]
+
+
 def test_zone_events_reach_a_webhook_signed_and_after_a_refusal(
-    client: TestClient, admin: dict, site_id: str, receiver: Receiver
+    client: TestClient, admin: dict, site_id: str, receiver: Receiver, settings: Settings
 ) -> None:
     body = {"kind": "webhook", "url": receiver.url, "secret": SECRET, "events": ["zone"]}
     assert client.put(f"/v1/sites/{site_id}/outputs/hook", json=body, headers=admin).is_success
-    time.sleep(2.5)  # workers read a site's outputs again every output_refresh_s (2 s)
-    receiver.refuse_until = time.monotonic() + 3.0
+    after_refresh(settings)
+    receiver.refusals = 2
     r = client.post("/v1/ingest?wait=true", json=walk(site_id, "walker"), headers=admin)
     assert r.status_code == 200, r.text
     got = until(lambda: receiver.accepted() if len(receiver.accepted()) >= 2 else None, 60)
@@ -145,71 +115,144 @@ def test_zone_events_reach_a_webhook_signed_and_after_a_refusal(
     fields = {"x", "y", "floor_id", "accuracy"}
     assert all(m["site_id"] == site_id and fields <= set(m) for m in got)
     assert got[0]["zones"] == ["Lab"] and got[1]["zones"] == []
-    refused = [q for q in receiver.requests if q["status"] == 503]
-    assert refused, "the receiver refused nothing: the retry was not exercised"
-    ok = [q for q in receiver.requests if q["status"] == 200]
+    refused = [q for q in receiver.requests if q.status == 503]
+    assert len(refused) == 2, "the receiver did not refuse twice: the retry was not exercised"
+    ok = [q for q in receiver.requests if q.status == 200]
     assert all(valid_signature(q, SECRET) for q in receiver.requests)
-    # a retry carries the id of the attempt it repeats
-    assert refused[0]["headers"]["webhook-id"] == ok[0]["headers"]["webhook-id"]
-    status = until(
-        lambda: (
-            (s := client.get(f"/v1/sites/{site_id}/outputs/hook", headers=admin).json()["status"])[
-                "pending"
-            ]
-            == 0
-            and s
-        )
-    )
+    # a retry carries the id and the body of the attempt it repeats
+    first = receiver.requests[0]
+    assert [q.header("webhook-id") for q in receiver.requests[:3]] == [
+        first.header("webhook-id")
+    ] * 3
+    assert ok[0].body == first.body
+    status = drained(client, admin, site_id, "hook")
     assert status["delivered"] == 2 and status["failed"] == 0 and status["last_ok_at"]
+    assert status["last_error"] is None
 
 
-def _broker() -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", 1883), timeout=1).close()
-        return True
-    except OSError:
-        return False
-
-
-@pytest.mark.skipif(not _broker(), reason="no MQTT broker answers on 127.0.0.1:1883")
+@needs_broker
 def test_every_position_is_published_and_the_zone_state_retained(
-    client: TestClient, admin: dict, site_id: str
+    client: TestClient, admin: dict, site_id: str, settings: Settings
 ) -> None:
     prefix = f"t{site_id}"
-    received: list[tuple[str, dict]] = []
-    sub = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-    sub.on_message = lambda c, u, m: received.append((m.topic, json.loads(m.payload)))
-    sub.connect("127.0.0.1", 1883)
-    sub.subscribe(f"{prefix}/#", qos=1)
-    sub.loop_start()
+    sub = Subscriber(f"{prefix}/#")
     try:
         body = {"kind": "mqtt", "url": "mqtt://127.0.0.1:1883", "topic_prefix": prefix}
         assert client.put(f"/v1/sites/{site_id}/outputs/mq", json=body, headers=admin).is_success
-        time.sleep(2.5)  # the workers' output_refresh_s
+        after_refresh(settings)
         r = client.post("/v1/ingest?wait=true", json=walk(site_id, "tag1"), headers=admin)
-        stored = client.get(
-            f"/v1/sites/{site_id}/devices/tag1/positions?limit=1000", headers=admin
-        ).json()["items"]
+        stored = stored_positions(client, admin, site_id, "tag1")
         assert len(stored) >= 30, r.text
         topic = f"{prefix}/{site_id}/devices/tag1/position"
-        until(lambda: len([t for t, _ in received if t == topic]) >= len(stored))
-        published = [m["t"] for t, m in received if t == topic]
-        assert published == [p["t"] for p in stored]  # each once, in order
+        until(lambda: len(sub.on(topic)) >= len(stored))
+        assert [m["t"] for m in sub.on(topic)] == stored  # each once, in order
         events = f"{prefix}/{site_id}/zones/Lab/events"
-        until(lambda: len([t for t, _ in received if t == events]) == 2)
+        until(lambda: len(sub.on(events)) == 2)
     finally:
-        sub.loop_stop()
-        sub.disconnect()
+        sub.close()
     # a fresh subscriber gets the retained zone state at once
-    fresh: list[dict] = []
-    late = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-    late.on_message = lambda c, u, m: fresh.append(json.loads(m.payload))
-    late.connect("127.0.0.1", 1883)
-    late.subscribe(f"{prefix}/{site_id}/devices/tag1/zone", qos=1)
-    late.loop_start()
+    late = Subscriber(f"{prefix}/{site_id}/devices/tag1/zone")
     try:
-        state = until(lambda: fresh and fresh[0], 10)
+        (state,) = until(lambda: late.on(f"{prefix}/{site_id}/devices/tag1/zone"), 10)
     finally:
-        late.loop_stop()
-        late.disconnect()
+        late.close()
     assert state["zones"] == [] and isinstance(state["t"], int)
+
+
+@needs_broker
+def test_home_assistant_discovery_announces_each_device_once_retained(
+    client: TestClient, admin: dict, site_id: str, settings: Settings
+) -> None:
+    prefix = f"ha{site_id}"
+    device = f"{prefix}/{site_id}/devices/tag-ha"
+    # the object id keeps letters, digits, _ and -
+    config_topic = f"homeassistant/device_tracker/locus_{site_id}_tag-ha/config"
+    sub = Subscriber(f"{prefix}/#", config_topic)
+    try:
+        body = {"kind": "mqtt", "url": "mqtt://127.0.0.1:1883", "topic_prefix": prefix}
+        plain = client.put(f"/v1/sites/{site_id}/outputs/ha", json=body, headers=admin)
+        assert plain.json()["home_assistant"] is False
+        on = client.put(
+            f"/v1/sites/{site_id}/outputs/ha", json=body | {"home_assistant": True}, headers=admin
+        )
+        assert on.status_code == 200 and on.json()["home_assistant"] is True, on.text
+        after_refresh(settings)
+        client.post("/v1/ingest?wait=true", json=walk(site_id, "tag-ha"), headers=admin)
+        stored = stored_positions(client, admin, site_id, "tag-ha")
+        until(lambda: len(sub.on(f"{device}/position")) >= len(stored))
+        # announced once on the connection, before the device's first state
+        assert len(sub.on(config_topic)) == 1
+        first = [p.topic for p in sub.received].index(config_topic)
+        assert first < [p.topic for p in sub.received].index(f"{device}/position")
+    finally:
+        sub.close()
+    late = Subscriber(config_topic, f"{device}/zone")
+    try:
+        until(lambda: len(late.received) == 2, 10, "the retained config and zone state")
+    finally:
+        late.close()
+    assert all(p.retained for p in late.received)
+    (config,) = late.on(config_topic)
+    assert config["state_topic"] == f"{device}/zone"
+    assert config["json_attributes_topic"] == f"{device}/position"
+    assert "value_json.accuracy" in config["json_attributes_template"]
+    assert "value_json.zones[0]" in config["value_template"]
+    assert config["unique_id"] == config_topic.split("/")[2]
+    assert config["device"]["identifiers"] == [config["unique_id"]]
+    (state,) = late.on(f"{device}/zone")
+    assert state == {"zones": [], "t": state["t"]}
+
+
+def test_a_rate_limit_spreads_delivery_to_at_most_its_rate(
+    client: TestClient, admin: dict, site_id: str, receiver: Receiver, settings: Settings
+) -> None:
+    rate = 8.0
+    body = {"kind": "webhook", "url": receiver.url, "secret": SECRET, "events": ["position"]}
+    r = client.put(
+        f"/v1/sites/{site_id}/outputs/slow", json=body | {"rate_limit": rate}, headers=admin
+    )
+    assert r.json()["rate_limit"] == rate, r.text
+    after_refresh(settings)
+    client.post("/v1/ingest?wait=true", json=walk(site_id, "rated"), headers=admin)
+    stored = stored_positions(client, admin, site_id, "rated")
+    assert len(stored) >= 30
+    until(lambda: len(receiver.accepted()) >= len(stored), 60)
+    assert [m["t"] for m in receiver.accepted()] == stored
+    sizes = [len(q.messages) for q in receiver.requests]
+    assert max(sizes) <= rate  # no POST carries more than a second's worth
+    # a token bucket of one second's messages: after the first second's burst, POSTs leave
+    # at the rate (counted from the second POST, which the bucket timed: the first one's
+    # arrival also holds the connection's opening)
+    later = receiver.requests[1:]
+    carried = sum(len(q.messages) for q in later[1:])
+    span = later[-1].at - later[0].at
+    assert carried >= 2 * rate and carried / span <= rate * 1.1, (carried, span)
+
+
+def test_a_slow_receiver_gets_the_backlog_in_batches_in_order(
+    client: TestClient, admin: dict, site_id: str, receiver: Receiver, settings: Settings
+) -> None:
+    receiver.delay_s = 1.0
+    body = {"kind": "webhook", "url": receiver.url, "secret": SECRET, "events": ["position"]}
+    put = client.put(
+        f"/v1/sites/{site_id}/outputs/batched", json=body | {"batch_max": 12}, headers=admin
+    )
+    assert put.json()["batch_max"] == 12, put.text
+    after_refresh(settings)
+    walked = walk(site_id, "streamer")
+    for k in range(0, len(walked["uwb_fix"]), 2):  # two fixes a batch, every 0.1 s
+        part = walked | {"uwb_fix": walked["uwb_fix"][k : k + 2]}
+        assert client.post("/v1/ingest?wait=true", json=part, headers=admin).status_code == 200
+        time.sleep(0.1)
+    stored = stored_positions(client, admin, site_id, "streamer")
+    until(lambda: len(receiver.accepted()) >= len(stored), 60)
+    assert [m["t"] for m in receiver.accepted()] == stored  # each once, in order
+    sizes = [len(q.messages) for q in receiver.requests]
+    # what waited while the receiver answered went together, a batch_max at most
+    assert 1 < max(sizes) <= 12 and len(sizes) <= len(stored) / 3, sizes
+    batches = [q for q in receiver.requests if isinstance(json.loads(q.body), list)]
+    assert batches and all(valid_signature(q, SECRET) for q in receiver.requests)
+    assert drained(client, admin, site_id, "batched")["delivered"] == len(stored)
+    # delivery's bookkeeping (leases, acknowledgements) is not a change of the output
+    after = client.get(f"/v1/sites/{site_id}/outputs/batched", headers=admin).json()
+    assert after["updated_at"] == put.json()["updated_at"]
