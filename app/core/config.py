@@ -277,9 +277,9 @@ class Settings(BaseSettings):
         le=86400,
         description="Wall seconds between the API's and each worker's return of the C "
         "allocator's free pages to the system (glibc ``malloc_trim``); 0 never. Without it "
-        "a process under steady load keeps growing by the freed pages it retains; trimmed "
-        "once a minute, a worker's resident memory saws up and down by 5 MB between trims, "
-        "while one trim costs about 0.4 ms.",
+        "a process under steady load keeps growing by the freed pages it retains; trimmed, "
+        "its resident memory stays flat (``python -m bench.soak`` follows it), and a trim is "
+        "cheap.",
     )
     api_malloc_arenas: int = Field(
         default=2,
@@ -421,8 +421,9 @@ class Settings(BaseSettings):
         le=1000,
         description="Held-out survey walks per fold a build replays through the HMM to choose "
         "its emission and k-NN fix weights and calibrate its radius (0: weights chosen on "
-        "single scans instead). Six walks a fold (30 in all) left the radius scale to the "
-        "luck of the walks drawn: on ILC site1 it came out 0.76 where 100 walks gave 0.59.",
+        "single scans instead). A few walks a fold leave the radius scale to the luck of the "
+        "walks drawn (``LOCUS_RADIOMAP_HMM_WALKS=6 locus eval ilc`` prints the build's "
+        "radius_scale at six).",
     )
     radiomap_progress_step: float = Field(
         default=0.05,

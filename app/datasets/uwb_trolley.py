@@ -11,16 +11,16 @@ tables of the folder's SOURCE_README.md, transcribed below.
 Attitude. The README orders the quaternion w, x, y, z. Read that way the
 body frame has its z axis pointing down (R₂₂ ≈ −1 throughout) and its x axis
 along the direction of travel; tag positions built from it with the lever
-arms are 0.35 m off the UWB fixes of every tag, whereas with the body frame
-turned 180° about x (``BODY_FLIP``: z up, y to the left of travel) they
-are 0.15–0.18 m off: the lever-arm table is written in that z-up frame.
+arms lie farther off the UWB fixes of every tag than with the body frame
+turned 180° about x (``BODY_FLIP``: z up, y to the left of travel): the
+lever-arm table is written in that z-up frame.
 :func:`check_attitude` measures the agreement of the body x axis with the
 velocity so that a recording read with the wrong order is caught.
 
 Time. Both files carry wall times (local time of the recording; converted
 here as if UTC, only differences matter). ``uwb_eval`` searches the clock
 offset on its calibration part: raw fixes agree with the truth best at 0 ms
-(10 ms steps), so the two clocks are one.
+(10 ms steps; ``locus eval uwb`` prints it), so the two clocks are one.
 """
 
 from __future__ import annotations

@@ -35,7 +35,8 @@ class AccuracyParams:
         Path-loss slope B (dB per ln m) of a transmitter without ``B``: the
         paper does not print its exponent n; n = 2 (free space, B = 20 / ln 10
         ≈ 8.69) reproduces its figures (0.48 m horizontal at the hall's
-        centre with 4 floor beacons, 0.19 m with 17).
+        centre with 4 floor beacons, 0.19 m with 17;
+        ``tests/engine/test_accuracy_map.py`` checks them).
     uwb_range_std_m : float
         Two-way-ranging standard deviation (m) of an anchor.
     max_range_m : float

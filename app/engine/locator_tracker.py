@@ -48,7 +48,8 @@ class LocatorTrackerParams:
         error that depends on where the tag is (walls, furniture, the
         carrier's body) is not in D and averages out neither over a window
         nor in the filter. Calibrated on the BLE locator tracks (per-locator
-        path loss, leave one track out): 1.1–1.4 m.
+        path loss, leave one track out; ``locus eval locator`` prints it for
+        each held-out track): 1.1–1.4 m.
     project_to_plan : bool
         Move the estimate off blocked cells after each update.
     """

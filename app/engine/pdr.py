@@ -39,8 +39,8 @@ class PdrParams:
     lowpass_hz : float
         Cut-off (Hz) of the Butterworth low-pass on |a|: at the top of walking
         cadence (1.5–2.5 steps/s), below the heel-strike ringing that splits a
-        step in two. On the ILC site1 training walks 2.5 Hz gave a tighter
-        spread of walked-distance ratios than 3 or 4 Hz.
+        step in two: higher cut-offs spread the walked-distance ratios of the
+        ILC site1 walks wider (``locus eval pdr`` prints their quartiles).
     lowpass_order : int
         Order of that filter.
     min_step_interval_ms : int
@@ -62,7 +62,8 @@ class PdrParams:
     heading_std_deg : float
         Standard deviation of a step's heading (degrees) for filters that move
         particles or states by steps: the median absolute heading error on ILC
-        site1 segments is about 9.4°, i.e. σ ≈ 9.4 / 0.674 ≈ 14° if Gaussian.
+        site1's test segments is about 10° (``locus eval pdr``), i.e.
+        σ ≈ 10 / 0.674 ≈ 15° if Gaussian.
     mag_time_constant_s : float
         Time constant (s) with which the magnetometer corrects the integrated
         gyro heading when there is no rotation vector.

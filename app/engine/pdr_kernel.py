@@ -3,8 +3,8 @@
 A batch's channels and preparation (sort, screens, heading channels filled)
 in one pass; then, for each stretch without a long pause, resampling onto the
 time grid, the low-pass of |a|, the heading (rotation vector, else gyro +
-magnetometer) and the peak search in another. In numpy they were some sixty
-small calls a batch, whose overhead cost ten times the arithmetic on a
+magnetometer) and the peak search in another. In numpy they were dozens of
+small calls a batch, whose overhead cost far more than the arithmetic on a
 second's fifty samples. Compiled once per process
 (numba's disk cache); ``load_kernel`` does it before a device needs it.
 """

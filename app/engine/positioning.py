@@ -81,7 +81,7 @@ class PositioningParams:
         Error (m) added in quadrature to the particle cloud's 68% radius to
         give the reported accuracy. The cloud measures the filter's
         uncertainty under its own RSSI model, not the model's misfit: on ILC
-        site1 it is 0.56 m at the median while the errors are 5 m. The server
+        site1 it is a small fraction of the errors. The server
         sets it per site to the median held-out error of the site's radio-map
         build (the fingerprints' cross-validation); 0 keeps the cloud's radius.
     """

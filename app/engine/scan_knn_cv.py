@@ -139,13 +139,13 @@ def choose_neighbours(
     weight power), the level power, the weight power, and k. Each is the
     candidate nearest the default that is as good as the best walk by walk.
 
-    The build of ILC site1's 457 training walks (five folds, every other
-    scan, readings up to 8 s old) took a signal floor of -85 dBm (5.978 m at
-    -100, 5.824 m at -85, 5.985 m at -80), kept the penalty of 50 dB (5.995 m
-    at 25, 5.83 m at 100) and level power 0 (5.907 m at 1, 6.044 m at 2), took
-    power 6 (5.767 m; 5.756 m at 8) and kept k 10; a two-floor, half-survey
-    subset took -80 dBm and 100 dB (8.941 m against 10.289 m at -100 dBm, 8.66
-    m at 100 dB): the distance that fits one building does not fit another.
+    A build of ILC site1's training walks moves the signal floor and the
+    weight power off their defaults, and two of its floors with half the
+    surveys move the signal floor and the penalty instead: the distance that
+    fits one building does not fit another. ``locus eval ilc`` prints what
+    the build chose and its error at every candidate
+    (``knn_walk_error_m_by_floor_dbm`` and the like); ``--floors`` and
+    ``--train-share`` make the smaller building.
     """
     base = ScanKnnParams()
     default_pair = [(base.k, base.weight_power)]

@@ -5,7 +5,7 @@ the scan's completion time as every reading's ``t`` (readings sharing a time
 are one scan), or each reading's own last-seen time (Android's
 ``ScanResult.timestamp``), which spreads a scan's fresh readings over up to
 a second and a half: on ILC site1's phones, scanning every 2 s, the gaps
-inside a scan reach 400 ms while scans are 600 ms apart, so no fixed gap
+inside a scan come close to the gaps between scans, so no fixed gap
 separates them. Readings are therefore taken in time order and a scan is
 cut where it must be, at its largest gap: when an access point is heard again
 well after its reading in the open scan (a scan hears each once, though

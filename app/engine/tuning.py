@@ -46,11 +46,11 @@ HMM_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.35)
 
 FLOOR_WEIGHT_CANDIDATES = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
 """Floor evidence weights (``HmmParams.floor_weight``) a build replays held-out walks, joined
-in pairs across floors, with (``app.engine.hmm.floor_validate``). Per-scan floor scores
-chose 0.05 on the two-floor, half-survey subset of site1, where the HMM then put 8.80% of
-its positions on a wrong floor on 51 validation walks (4.44% at 0.4); on site1's 147
-validation walks joined across floors a change of floor was followed within 5.5 s at 0.2
-and 2.0 s at 0.8 (p90)."""
+in pairs across floors, with (``app.engine.hmm.floor_validate``). Scored on single scans
+instead, a small building's floor weight came out so low that the HMM then put many of its
+positions on a wrong floor; and the higher the weight, the sooner a change of floor is
+followed. The build's share of wrong floors at each candidate is its
+``wrong_floor_share_by_floor_weight``, which ``locus eval ilc`` prints."""
 
 FIX_WEIGHT_CANDIDATES = (0.0, 10.0, 20.0)
 """Weights of the per-scan k-NN fix in the HMM's emission a build replays held-out walks
@@ -60,8 +60,9 @@ then pulls the track the wrong way."""
 WALK_NOISE_CANDIDATES = (0.02, 0.05, 0.15, 0.5)
 """Transition noise (m² per second, ``HmmParams.walk_noise_m2_per_s``) a build replays
 held-out walks with: how far the walker may stray from the steps between scans. Phones
-whose steps are poorly counted or oriented need more; on 58 of site1's validation walks
-the HMM erred 6.885 m at 0.02 and 7.262 m at 0.5."""
+whose steps are poorly counted or oriented need more, while well-counted steps lose by it.
+The build's HMM error at each candidate is its ``hmm_walk_error_m_by_walk_noise``, which
+``locus eval ilc`` prints."""
 
 SMOOTHER_FIX_SCALE_CANDIDATES = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0)
 """Factors on the positions' σ a build scores the fixed-lag and full-pass smoothers with,
@@ -309,9 +310,8 @@ def tune_site(
     the emission and floor weights where given; the
     per-scan scores of ``held`` choose them otherwise. The two are chosen
     apart: tied to the emission weight, the floor weight followed it down
-    where the replays wanted the steps trusted more (on site1's validation
-    walks 0.1 for both erred 6.307 m live with 3.7% wrong floors, 0.1 with
-    the per-scan floor choice (0.15) 6.570 m with 1.9%).
+    where the replays wanted the steps trusted more, and put more positions on
+    a wrong floor.
     """
     base = SiteTuning.defaults()
     pdr = fit_pdr_constants(walks, PdrParams()) if walks else PdrParams()

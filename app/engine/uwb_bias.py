@@ -12,16 +12,16 @@ constant offset per pair is removable two ways:
   positions eliminated, b alone remains, solvable once the tag has been seen
   from varied enough geometry for ``Σ (I − P_k)`` to be regular. On the
   trolley recording the two weakest directions (those that look like a
-  shift of the tag) have eigenvalue ≈ 0.13 of the mean, the others 0.85–1:
-  well conditioned. The common-mode part (all ranges long) is never
+  shift of the tag) have eigenvalues well below the mean but far from zero,
+  the others near it: well conditioned. The common-mode part (all ranges long) is never
   mistaken for a shift when anchors surround the tag. Fixes are computed
   from ranges already corrected by the current estimate b̂, so each epoch
   adds ``r_k + (I − P_k) b̂`` (its residual as if uncorrected). Sums forget
   with a time constant, and a weak prior (zero, or a survey) keeps anchors
   never seen at their prior.
   A running mean of the residuals alone (gain 1/n) would have the same
-  fixed point but converges like n^(−λ) with λ ≈ 0.13 in the weak
-  directions: on the recording it drifted by decimetres within two minutes.
+  fixed point but converges like n^(−λ) with λ the weak directions'
+  eigenvalue: on the recording it was still drifting minutes in.
 * **Survey calibration**: ranges recorded at known positions give the bias
   directly as the median of measured minus true range per pair.
 """

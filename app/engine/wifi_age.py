@@ -10,10 +10,10 @@ each candidate age by the per-scan k-NN (``app.engine.scan_knn``) on its own
 surveys, whole walks held out in turn (``app.engine.scan_knn_cv``), and keeps
 the age nearest the default that is as good as the best walk by walk.
 
-On ILC site1's 457 training walks (five walk folds, every other held-out
-scan, mean of the walks' mean errors) the k-NN erred 6.774 m with readings
-up to 2 s old, 6.161 m at 5 s and 5.978 m at 8 s. Longer ages than 8 s
-add readings heard too far back along the walk.
+On ILC site1 the k-NN errs less the older the readings it keeps, up to the
+oldest candidate; ``locus eval ilc`` prints the build's error at each
+candidate age (``knn_walk_error_m_by_wifi_max_age_ms``). Longer ages than the
+candidates' add readings heard too far back along the walk.
 """
 
 from __future__ import annotations

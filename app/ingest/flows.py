@@ -43,7 +43,7 @@ def submit_batch(
     Synchronous, so that the caller's parsed batch is freed before it awaits the positions:
     a thousand requests waiting each with their batch's small objects alive spread them
     over the allocator's arenas, and Python's allocator keeps an arena while any object
-    in it lives (a 5-s stall of a server carrying 1,000 devices kept 22 more arenas of 1 MiB).
+    in it lives, so a stall under many devices would leave arenas held long after it.
     """
     count = batch.sample_count
     version = service.check_batch(
@@ -140,8 +140,8 @@ async def _outcome(future: asyncio.Future[Outcome], timeout_s: float) -> Outcome
     """Await a submitted batch's outcome; the batch stays queued when the wait times out.
 
     ``asyncio.wait`` leaves the future alone on a timeout or a cancellation, as
-    ``wait_for(shield(...))`` does, with 15 objects alive per waiting request where that
-    kept 25.
+    ``wait_for(shield(...))`` does, with fewer objects alive per waiting request than that
+    keeps.
     """
     done, _ = await asyncio.wait((future,), timeout=timeout_s)
     if not done:

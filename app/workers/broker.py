@@ -100,8 +100,8 @@ class MemoryBroker:
     """Worker processes on this machine, supervised, with at-least-once delivery.
 
     Runs on the API's event loop: the pipes are read and written there, without threads
-    (a queue's feeder thread and a reader thread per worker were 19% of the API process's
-    samples at saturation, most of it contending for the GIL).
+    (a queue's feeder thread and a reader thread per worker took a large share of the API
+    process's time at saturation, most of it contending for the GIL).
     """
 
     def __init__(self, settings: Settings, shards: int) -> None:

@@ -123,7 +123,7 @@ def _floats(items: list[dict[str, Any]], key: str) -> np.ndarray:
 
 def _sorted(arrays: _A) -> _A:
     t = arrays.t  # type: ignore[attr-defined]
-    # most batches arrive in order, and most kinds empty: checking costs a third of sorting
+    # most batches arrive in order, and most kinds empty: checking costs less than sorting
     if t.size < 2 or bool((t[1:] >= t[:-1]).all()):
         return arrays
     order = np.argsort(t, kind="stable")

@@ -32,7 +32,7 @@ SCAN_DELIVERY_MS = 4_000
 """How long before its delivery a WiFi reading may have been heard.
 
 A phone reports a WiFi scan when it completes, with every access point
-timed by when it was heard, up to two seconds earlier on ILC site1's phones
+timed by when it was heard, seconds earlier on ILC site1's phones
 (a client may send those last-seen times as ``t``); meanwhile its inertial
 samples of those seconds have already gone out and been used. A WiFi
 reading is therefore late only behind the WiFi already used, or this far

@@ -306,8 +306,8 @@ class Shard:
 
     def _flush_filters(self, devices: list[DeviceSession]) -> list[list[Estimate]]:
         """Return what each device's filter still holds back, the devices of a shared engine
-        flushed in one engine call (one call per device took 45% of a worker's time once
-        5,000 devices waited longer than ``flush_after_s`` between their batches)."""
+        flushed in one engine call (one call per device became much of a worker's time once
+        thousands of devices waited longer than ``flush_after_s`` between their batches)."""
         held: list[list[Estimate]] = [[] for _ in devices]
         together: dict[int, tuple[BatchEngine, list[int]]] = {}
         for i, device in enumerate(devices):

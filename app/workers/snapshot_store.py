@@ -43,7 +43,8 @@ class DatabaseSnapshots:
 
     def save_all(self, db: Session, snapshots: Sequence[tuple[DeviceKey, int, bytes]]) -> None:
         """Insert or replace the devices' snapshots: one upsert for the round (the ORM's
-        read-then-write was 4.4% of a worker's samples at saturation)."""
+        read-then-write cost a saturated worker a visible share of its time; ``python -m
+        bench.worker --profile`` shows what a round's snapshots cost)."""
         if snapshots:
             rows = [
                 {"site_id": site, "device_id": device, "t": t, "snapshot": blob}

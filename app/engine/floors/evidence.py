@@ -4,9 +4,9 @@ Two kinds of evidence, summed in the log domain (a log-linear pool):
 
 - **the transmitter table** (always): the mean of the ``strongest_k``
   strongest readings of each floor's transmitters, divided by a temperature
-  ``strength_temperature_db``. On ILC site1, a mall whose atria let about
-  42% of readings come from other floors, the floor of the strongest
-  readings is right in about 95% of windows, the patent's E_L in 88%;
+  ``strength_temperature_db``. In a mall whose atria let many readings
+  come from other floors (ILC site1), the floor of the strongest readings
+  is right more often than the patent's E_L;
 - **radio maps** (when every floor has one): the likelihood of the window's
   strongest readings at each floor's reference points, a Gaussian on the
   difference from the surveyed mean (a transmitter the survey never heard at

@@ -77,15 +77,14 @@ class FloorParams:
         Filter: at most this many readings of a window (the strongest) are
         scored against the maps, to bound the cost. Weak readings count: a
         transmitter a floor's survey never heard is evidence against that
-        floor even when it is faint (on ILC site1's validation walks, with
-        only the 20 strongest readings scored 2.3% of estimates fell on a
-        wrong floor, with all of them 0.16%).
+        floor even when it is faint: scoring only the strongest few puts
+        many more estimates on a wrong floor.
     map_block_m : float
         Filter: one reference point (the most surveyed) per block of this side
         (m) enters the floor likelihood; the maps are smooth over metres and
-        the likelihood is averaged over the floor anyway. On ILC site1's
-        validation walks 1, 2, 3 and 4 m blocks choose the same floors, 5 m
-        start to miss; 4 m costs a sixteenth of scoring every point.
+        the likelihood is averaged over the floor anyway. Blocks up to this
+        side choose the same floors as every point does, larger ones start
+        to miss; 4 m costs a sixteenth of scoring every point.
     """
 
     method: str = "filter"

@@ -25,7 +25,7 @@ class HmmParams:
         σ_d of a step's length (m), the patent's 0.1 m.
     heading_std_deg : float
         σ_φ of a step's heading (degrees): PDR headings on ILC site1 are off by
-        about 9.4° in median, i.e. σ ≈ 14° if Gaussian.
+        about 10° in median (``locus eval pdr``), i.e. σ ≈ 15° if Gaussian.
     walk_noise_m2_per_s : float
         Random-walk variance (m²/s) added between scans: steps PDR missed or
         mis-sized.
@@ -58,23 +58,17 @@ class HmmParams:
         survey never passed can be followed there; 0 keeps the radio map's
         points (within its 3 m). Far enough to cover the walkable plan of a
         surveyed building, so that how far held-out walkers stray from the
-        survey is no constant of the site: on site1's validation walks (147
-        walks, maps from the other 310) the live mean went from 5.71 m at 10
-        m to 5.45 m at 20 m (the same at 30 m), the full-pass mean from 4.68
-        m to 4.62 m, at the same cost per update; on the two-floor,
-        half-survey subset (51 walks) from 7.99 m to 7.88 m (the same at 30
-        and 40 m). An earlier tracker went from 7.29 m at 0 to 6.91 m at 8 m.
+        survey is no constant of the site: a shorter reach loses the walkers
+        who stray past it, a longer one adds little.
     reach_scans : int
         A point with no survey scan within ``knn_radius_m`` pools this many of
-        its nearest scans (6: 6.94 m, 16: 6.91 m, 40: 6.93 m live).
+        its nearest scans; the error hardly depends on how many.
     knn_pool_db : float
         Temperature (dB) of the soft minimum of the pooled scans' distances:
         near 1 dB a point is as good as its single best survey scan, a match
         that phone noise (4–6 dB) makes partly luck; at 3 dB the few best
-        scans around it count. On site1's validation walks (maps from the
-        other training walks) the HMM's live mean went from 6.17 m at 1 dB
-        to 5.95 m at 3 dB (5.96 m at 6 dB, 6.12 m at 10 dB), its full-pass
-        smoothed mean from 5.45 m to 5.11 m.
+        scans around it count; much wider, poor matches count nearly as much
+        as good ones.
     fix_nats : float
         Weight of the per-scan k-NN fix in the emission (before tempering):
         a point's log-likelihood also counts this many times the log-density,
@@ -82,27 +76,27 @@ class HmmParams:
         The pooled emission says how well the survey scans near a point
         match; the fix says where on the floor the best matches are, and
         pulls a track that has drifted into a region of middling matches
-        back to them. On site1's validation walks (maps from the other
-        training walks) the live mean went from 6.54 m to 6.29 m at 10 (6.49
-        m at 5, 6.28 m at 15), the 95th percentile from 21.5 m to 18.4 m.
-        0 turns it off.
+        back to them. 0 turns it off. A build replays held-out walks with
+        each of ``FIX_WEIGHT_CANDIDATES`` (``app.engine.tuning``); its error
+        at each is the build's ``hmm_walk_error_m_by_fix_weight``, which
+        ``locus eval ilc`` prints.
     fix_sigma_m : float
         Spread (m) of each neighbour's component: about the per-scan k-NN's
-        own error (on validation walks 8 m beat 3, 5 and 12 m). A site's
-        build sets it to the root mean square of its held-out k-NN errors
-        (8.326 m from site1's 457 training walks).
+        own error. A site's build sets it to the root mean square of its
+        held-out k-NN errors (the default is about what site1's build sets:
+        ``locus eval ilc`` prints the build's ``fix_sigma_m``).
     offset_prior_scans : float
         The device's RSSI offset, taken off every scan before matching, is
         the mean level difference of its scans from the survey scans made
         where the posterior is surest, shrunk towards 0 by a prior worth this
         many scans. Phones of different makes hear the same access point
-        several dB apart, and one 6 dB louder or quieter than the survey's
-        phones matches the wrong places: on site1's validation walks with
-        every reading shifted by +6 / -6 dB the live mean went from 6.91 /
-        7.07 m to 6.70 / 6.64 m (walks of a minute or two; a phone tracked
-        longer converges further), and unshifted from 6.29 to 6.35 m.
-        Scans chosen by match rather than by place hide the offset (they are
-        the ones as loud as the phone) and recovered less.
+        several dB apart, and one several dB louder or quieter than the
+        survey's phones matches the wrong places. The offset takes back part
+        of that loss within a walk of a minute or two (a phone tracked longer
+        converges further), at a small cost on phones like the survey's;
+        ``locus eval ilc --rssi-offset 6`` replays the held-out walks so
+        shifted. Scans chosen by match rather than by place hide the offset
+        (they are the ones as loud as the phone) and recovered less.
     offset_max_db : float
         The running offset stays within ± this (dB).
     fix_max_nats : float
@@ -120,14 +114,11 @@ class HmmParams:
     floor_switch_prob : float
         Probability per scan that the floor changes.
     floor_switch_posterior : float
-        Belief another floor must reach before the tracked floor changes. On
-        site1's validation walks (147 held-out walks joined in pairs across
-        floors, maps from the other 310) 0.8 followed a change of floor in
-        2.0 s at the median and 6.1 s at p90, against 3.8 s and 8.2 s at 0.99,
-        with as many positions on a wrong floor (1.85% against 1.87%) and,
-        on the positions both put on the right floor, a live mean 0.006 m
-        and a fixed-lag mean 0.021 m higher. At 0.6 the tracks lost more
-        (0.035 / 0.060 m).
+        Belief another floor must reach before the tracked floor changes. A
+        belief nearer 1 follows a change of floor later, with no fewer
+        positions on a wrong floor; a lower one costs the positions on the
+        right floor some accuracy. ``locus eval ilc-floor-change`` prints how
+        soon the engine follows a change of floor.
     floor_classifier_weight : float
         Temper of the per-scan floor classifier's log-probabilities added to
         each scan's floor evidence (``app.engine.hmm.floor_classifier``); 0
@@ -161,35 +152,32 @@ class HmmParams:
         Error (m) added in quadrature to the posterior's 68% radius: the
         posterior knows the maps' noise, not how far the fingerprints
         themselves are from the truth. The server sets it per site to the
-        median held-out error of its radio-map build; on ILC site1's
-        validation walks that put 69.5% of the errors inside the radius,
-        against 11% without.
+        median held-out error of its radio-map build; without it the radius
+        holds far fewer than 68% of the errors (``locus eval ilc`` prints the
+        share it holds, "in acc.").
     radius_temper : float
         Exponent τ on the posterior before its spread is taken for the radius
         (p_j^τ, renormalised): the emission makes the posterior sharper than
-        the fingerprints resolve, so its own spread hardly ranks the errors.
-        With τ = 0.05 and the per-scan k-NN's disagreement added, the radius
-        ranked site1's validation walks' errors at Spearman 0.36, against
-        0.16 for the posterior's spread alone.
+        the fingerprints resolve, so its own spread hardly ranks the errors;
+        tempered, with the per-scan k-NN's disagreement added, it ranks them
+        better (``locus eval ilc`` prints the radius's rank correlation with
+        the error, "acc. rank").
     radius_match_db : float
         The radius grows with the last scan's distance (dB) to its nearest
-        survey scan of the floor, relative to this typical distance (about
-        6 dB for ILC site1's phones): a scan unlike any in the survey was heard
-        where the survey is sparse or the radio changed. On site1's validation
-        walks this raised the radius's rank correlation with the error from
-        0.39 to 0.45; and since a denser survey matches closer, a scale
-        calibrated on maps built from fewer walks (the build's folds) still
-        held 69% of the errors on the full maps (75% without).
+        survey scan of the floor, relative to this typical distance (ILC
+        site1's phones'): a scan unlike any in the survey was heard where the
+        survey is sparse or the radio changed, so the radius ranks the errors
+        better. And since a denser survey matches closer, a scale calibrated
+        on maps built from fewer walks (the build's folds) still holds about
+        68% of the errors on the full maps, where without this factor the
+        radius comes out too wide there.
     radius_match_min_db : float
         Smallest best-match distance (dB) counted: an exact match is luck.
     radius_match_tau_s : float
         Time constant (s) with which that factor follows the scans (0: the
         last scan's alone): how well a device's scans have been matching the
         survey for the last half minute says more about its errors than the
-        last scan does. On a build of 348 site1 surveys its 109 validation
-        walks' radius ranked the errors at Spearman 0.332 with the last
-        scan's factor alone and 0.395 at 30 s; on the two-floor, half-survey
-        subset's 51 validation walks 0.523 and 0.545.
+        last scan does.
     radius_scale : float
         Factor on the posterior's 68% radius before the floor is added: the
         build shrinks it where the posterior's spread alone holds more than
@@ -206,10 +194,10 @@ class HmmParams:
     motion_gate : float
         A learned rotation or scale counts only as far as it stands out of its
         own noise (the k-NN fix's spread ``fix_sigma_m`` over the track's):
-        by c² / (c² + g σ²). On site1's 147 validation walks (maps from 310
-        surveys) a prior of 50 m² and a gate of 9 took the live HMM from
-        5.508 to 5.329 m and the full pass from 4.893 to 4.618 m; with every
-        step turned 90° from 10.512 to 9.059 m (full pass 10.223 to 8.370 m).
+        by c² / (c² + g σ²), so that a phone whose steps need no correction
+        keeps them. The learned motion pays most where the steps are wrong:
+        ``locus eval ilc --heading-offset 90`` prints the HMM with and
+        without it on phones carried turned.
     motion_tau_s : float
         Time constant (s) with which old scans stop counting in that fit.
     motion_min_scale, motion_max_scale : float

@@ -28,7 +28,7 @@ def reweight(w: np.ndarray, ll: np.ndarray) -> np.ndarray:
     ndarray of float64, shape (D, N)
         If every product underflows, the likelihood alone, normalised.
 
-    The exponential is taken in float32, at a fifth of float64's cost: its
+    The exponential is taken in float32, at a fraction of float64's cost: its
     relative error of 10⁻⁷ is nothing beside the weights' spread, and a
     particle over 87 nats below the best, whose likelihood then rounds to 0
     instead of below 10⁻³⁸, was dead either way.

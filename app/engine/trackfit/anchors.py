@@ -9,11 +9,11 @@ For the track point the scan was taken at the fitter adds
     c(x) = min(cap, w (ℓ_max - ℓ(x)))
 
 with ℓ the mixture's log-density and w its weight. On site1's validation
-walks this placed a scan's best cell 6.73 m from the truth on average, the
-HMM's per-point emission on the pooled radio map 12.47 m: a pooled cell's
-Gaussian RSSI model ranks far-away cells too close to the right one for a
-single scan. The costs are kept as one raster per scan on the radio map's own
-grid (1 m), so a candidate end costs one gather.
+walks this placed a scan's best cell far nearer the truth than the HMM's
+per-point emission on the pooled radio map does: a pooled cell's Gaussian
+RSSI model ranks far-away cells too close to the right one for a single scan.
+The costs are kept as one raster per scan on the radio map's own grid (1 m),
+so a candidate end costs one gather.
 """
 
 from __future__ import annotations

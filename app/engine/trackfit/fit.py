@@ -44,15 +44,13 @@ class TrackFitParams:
         raster cell); 0 keeps ``grid`` whatever the links. A link shorter than
         the cell mostly ends in the cell it started from, where only the
         cheapest track survives: the DP keeps one or two tracks and turns
-        greedy (on site1 per-step links of 0.66 m at a 1 m grid kept 1-8 cells
-        alive and died at a wall in 70 of 114 test walks). The paper's 1 m grid
-        suits its links of a metre or more; for shorter links the cell shrinks
-        with them, at the cost of more cells alive. On the site1 validation
-        walks (per-step links, heading known) the mean error was 4.57 m at 0
-        (raw 3.41 m), 3.61 m at 1, 3.15 m at 1/√2 (the cell whose diagonal is
-        a link, which every link leaves); 1/√2 costs about 2.5 times the time
-        and takes a 171-step track on the largest floor past the 1 s budget,
-        so the default is 1.
+        greedy, and per-step links at a 1 m grid often die at a wall. The
+        paper's 1 m grid suits its links of a metre or more; for shorter links
+        the cell shrinks with them, at the cost of more cells alive. 1/√2 (the
+        cell whose diagonal is a link, which every link leaves) fits per-step
+        links closer than 1, but costs a few times the time and takes a long
+        track on a large floor past a second (``python -m bench.trackfit``
+        times fits by track length and grid), so the default is 1.
     c2 : float
         C2, weight of the turn changes Σ |φ_i|.
     recover : bool
@@ -60,11 +58,10 @@ class TrackFitParams:
         than give up (see ``RELAX_*``).
     wide_scales, wide_turns : tuple of float
         Γ_w and Φ_w (rad), the first rung of that ladder, costed by the same
-        C1 |1 - γ| + C2 |φ|. Physical range: on the ILC site1 training walks the
-        PDR's length over the surveyed length between waypoints runs 0.82–1.24
-        (10th–90th percentile) and its heading, after removing each walk's
-        bias, strays up to 22° (90th percentile) between waypoints: Γ_w =
-        0.7–1.3 and Φ_w = ±0.5 rad (29°) cover that, Γ and Φ do not.
+        C1 |1 - γ| + C2 |φ|. Physical range: Γ_w = 0.7–1.3 and Φ_w = ±0.5
+        rad (29°) cover how far, on the ILC site1 training walks, the PDR's
+        length and heading (after removing each walk's bias) stray from the
+        surveyed path between waypoints, most of the time; Γ and Φ do not.
     snap_start : float
         Largest distance (m) a start on a blocked cell is moved to the nearest
         free cell; 0 refuses such a start.
@@ -82,14 +79,16 @@ class TrackFitParams:
         (``AnchorCosts``). The likelihood is a mixture over the scan's nearest
         survey scans, not a product of per-reading terms, so it is not
         overconfident and enters untempered: on the site1 validation walks
-        0.3, 1 and 3 gave 4.75, 4.15 and 4.54 m with the heading unknown,
-        2.29, 2.34 and 2.47 m with it known.
+        weights well below and above 1 fitted worse with the heading unknown
+        and hardly differed with it known (``locus eval trackfit
+        --validation-fraction 0.2 --anchor-weight W`` prints the errors at W).
     anchor_sigma : float
         Spread (m) of each neighbour's Gaussian in an anchor's mixture: how
         far from a matching survey scan the phone may have scanned. The
         mixture itself widens where the neighbours disagree, so this is the
-        spread of one good match; on the site1 validation walks 5 m (the
-        per-scan k-NN's median error there was 5.46 m) beat 3 and 8 m.
+        spread of one good match: about the per-scan k-NN's median error,
+        which fitted the site1 validation walks better than narrower or wider
+        (``locus eval trackfit --anchor-sigma S`` tries another).
     anchor_cap : float
         Largest score (after weighting) one anchor adds: a scan that makes a
         position very unlikely is as likely an outlier (a reflection, a

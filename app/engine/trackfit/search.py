@@ -57,10 +57,10 @@ class TrackSearchParams:
         heading is unknown; the programme's Φ (±0.25 rad) on the first link
         covers the gaps between them.
     scales : tuple of float
-        Walker step-length scales s. On ILC site1's survey walks the summed
+        Walker step-length scales s. On ILC site1's test walks the summed
         PDR step length over the surveyed length runs 0.955–1.076
-        (quartiles) with tails near ±20 %; s covers ±20 % in 5 % steps and
-        the programme's Γ the rest.
+        (quartiles, as ``locus eval pdr`` prints them) with longer tails;
+        s covers ±20 % in 5 % steps and the programme's Γ the rest.
     drifts : tuple of float
         Heading drift rates β (rad/s): a phone gyroscope's residual bias after
         the OS's own calibration is of the order of 0.1°/s; ±0.3°/s bends a
@@ -86,14 +86,17 @@ class TrackSearchParams:
         links by Γ: C1 |1 - s| scale_links. Without a prior, hypotheses that
         explain nothing better than s = 1 would win ties at random. On the
         site1 validation walks (one or two minutes, a few merged links each)
-        30 links beat 10 and 60 with the heading given and withheld, on four
-        of five floors.
+        30 links fitted better than fewer or more, with the heading given and
+        withheld (``locus eval trackfit --validation-fraction 0.2
+        --scale-links N`` prints the errors at N).
     drift_seconds : float
         A drift hypothesis costs what the programme pays to follow that drift
         with turn changes for this long (s): C2 |β| drift_seconds. Drift
-        becomes worth hypothesising on walks longer than this. 120 s measured
-        as well as 60 s on the site1 validation walks, and 90 s keeps the
-        synthetic office walk's 0.2°/s drift found (0.67 m, 0.81 m at 120 s).
+        becomes worth hypothesising on walks longer than this. Between one
+        and two minutes it hardly matters on the site1 validation walks
+        (``locus eval trackfit --drift-seconds S``), and 90 s finds the
+        synthetic office walk's 0.2°/s drift within the 0.8 m that
+        ``tests/engine/test_trackfit_search.py`` asserts.
     screen_weight : float
         Share of a hypothesis' screening cost (m² off the plan) added to its
         fit's score: the fit itself stays on free space whatever the
@@ -106,10 +109,10 @@ class TrackSearchParams:
         rigid tracks is set aside: dead reckoning whose heading wanders leaves
         the plan as a rigid track at the right rotation too, and the
         programme may bend it back as cheaply as a wrong rotation that stays
-        on the plan rigid. On the site1 validation walks this flagged 10 more
-        of 109 withheld-heading fits, and the fits left unflagged erred 3.25 m
-        against their raw 3.30 m (3.27 against 3.33 m before); with anchors
-        2.86 against 3.48 m (3.48 against 3.41 m).
+        on the plan rigid. On the site1 validation walks this second rule
+        flags more of the withheld-heading fits, and those left unflagged
+        gain more on their raw tracks (``locus eval trackfit`` prints the
+        fits flagged and the errors of the others).
     bias_step, bias_range : float
         Compass biases b (rad) tried with per-link headings: every multiple of
         ``bias_step`` within ±``bias_range`` (a phone's compass indoors is

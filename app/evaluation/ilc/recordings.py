@@ -25,8 +25,7 @@ from app.geometry.raster import floor_plan
 
 PLAN_CELL_M = 0.5
 """Raster cell (m) of the walkable area: at 1 m the burnt shop outlines eat the
-narrow corridors (a fifth of the waypoints would fall on blocked cells), at
-0.5 m fewer than 10% do on every floor."""
+narrow corridors and many waypoints fall on blocked cells; at 0.5 m few do."""
 
 MAX_WIFI_AGE_MS = 2000
 """WiFi readings older than this at their scan time are cached repeats and dropped."""
