@@ -14,6 +14,7 @@ import time
 import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,6 @@ from app.engine.calibration import CalibrationParams, TransmitterFit, calibrate
 from app.engine.crossval import CrossValidation, cross_validate
 from app.engine.hmm.emission import EmissionModel
 from app.engine.hmm.floor_validate import (
-    DEFAULT_FLOOR_CLASSIFIER_WEIGHT,
     FLOOR_CLASSIFIER_WEIGHT_CANDIDATES,
     FloorWalk,
     WalkEvidence,
@@ -436,7 +436,7 @@ def compute_build(
             validation,
             replays,
             floor_replays.floor_scores(tuning.floor_classifier_weight) if floors_chosen else {},
-            floor_replays.classifier_scores if floors_chosen else {},
+            floor_replays.classifier_scores(tuning.floor_weight) if floors_chosen else {},
             smoothers,
             age_scores,
             knn_scores,
@@ -679,37 +679,39 @@ class FloorReplays:
             out += pair_shares(self.evidence[fold], weight, classifier_weight, floors, self.params)
         return out
 
-    @property
-    def classifier_scores(self) -> dict[float, list[float]]:
-        """Return the pairs' shares per floor-classifier weight, the classifier alone."""
-        return {c: self._scores(None, c) for c in FLOOR_CLASSIFIER_WEIGHT_CANDIDATES}
+    @cached_property
+    def grid(self) -> dict[tuple[float, float], list[float]]:
+        """Return the pairs' shares per (floor weight, classifier weight); a floor weight
+        of 0 leaves the radio map's evidence out, and one of the two counts."""
+        radio: list[tuple[int | None, float]] = [(None, 0.0)]
+        radio += list(enumerate(FLOOR_WEIGHT_CANDIDATES))
+        return {
+            (w, c): self._scores(k, c)
+            for k, w in radio
+            for c in (0.0, *FLOOR_CLASSIFIER_WEIGHT_CANDIDATES)
+            if k is not None or c > 0.0
+        }
+
+    def classifier_scores(self, floor_weight: float) -> dict[float, list[float]]:
+        """Return the pairs' shares per classifier weight at ``floor_weight``."""
+        return {c: v for (w, c), v in self.grid.items() if w == floor_weight}
 
     def floor_scores(self, classifier_weight: float) -> dict[float, list[float]]:
-        """Return the pairs' shares per floor weight (0: the classifier alone) with the
-        classifier at ``classifier_weight``."""
-        with_radio = {
-            w: self._scores(k, classifier_weight) for k, w in enumerate(FLOOR_WEIGHT_CANDIDATES)
-        }
-        return {0.0: self._scores(None, classifier_weight)} | with_radio
+        """Return the pairs' shares per floor weight at ``classifier_weight``."""
+        return {w: v for (w, c), v in self.grid.items() if c == classifier_weight}
 
     def choose(self) -> tuple[float, float] | None:
-        """Return the floor weight and the classifier weight; None without pairs.
+        """Return the floor weight and the classifier weight that put the fewest of the
+        pairs' scans on a wrong floor (the smaller weights on a tie); None without pairs.
 
-        The classifier's weight first, on its own, then whether the radio map's
-        evidence should join it: a floor weight other than 0 only where it puts
-        measurably fewer scans on a wrong floor (the one-standard-error rule).
-        Where a floor is thinly surveyed, the radio map's evidence for it is
-        confidently wrong (hundreds of nats over a walk), which a classifier's
-        probabilities cannot outweigh.
+        Both together: where a floor is thinly surveyed the radio map's floor
+        evidence is confidently wrong (hundreds of nats over a walk) and the
+        classifier alone does best; where the survey is dense the radio map's
+        evidence tells floors apart that the classifier confuses.
         """
-        if not self.folds:
+        if not self.folds or not all(self.grid.values()):
             return None
-        by_classifier = self.classifier_scores
-        if not all(by_classifier.values()):
-            return None
-        classifier = one_standard_error_choice(by_classifier, DEFAULT_FLOOR_CLASSIFIER_WEIGHT)
-        floor_weight = one_standard_error_choice(self.floor_scores(classifier), 0.0)
-        return floor_weight, classifier
+        return min(self.grid, key=lambda key: (float(np.mean(self.grid[key])), key))
 
 
 def _replayed_key(tuning: SiteTuning) -> HmmKey:

@@ -30,12 +30,8 @@ from app.engine.wknn import unique_readings
 
 FLOOR_CLASSIFIER_WEIGHT_CANDIDATES = (0.25, 0.5, 1.0, 2.0)
 """Tempers of the floor classifier's log-probabilities (``HmmParams.floor_classifier_weight``)
-a build replays held-out walks, joined in pairs across floors, with, the radio map's floor
-evidence left out."""
-
-DEFAULT_FLOOR_CLASSIFIER_WEIGHT = 1.0
-"""The classifier weight the one-standard-error rule stays nearest to: its probabilities
-as fitted."""
+a build replays held-out walks, joined in pairs across floors, with, alone and beside each
+of the radio map's floor weights."""
 
 
 @dataclass(frozen=True, eq=False)
