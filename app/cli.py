@@ -361,7 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--test-fraction", type=float, default=0.2)
     replay.add_argument("--prefix", default="replay-", help="device id prefix (site folder)")
     replay.set_defaults(func=cmd_replay)
-    evaluate = commands.add_parser("eval", help="accuracy on the recordings in $LOCUS_DATA_DIR (docs/data.md)")
+    evaluate = commands.add_parser("eval", help="accuracy on the recordings in $LOCUS_DATA_DIR")
     evaluate.add_argument("name", choices=sorted(EVALUATIONS))
     evaluate.add_argument("rest", nargs=argparse.REMAINDER, help="options of that evaluation")
     evaluate.set_defaults(func=cmd_eval)
