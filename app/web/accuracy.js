@@ -2,6 +2,7 @@
 // each cell of the floor (docs/api.md, "Planning"), drawn as a heatmap under the plan.
 
 import { ApiError } from "./api.js";
+import { hasShape, showGrid } from "./grid.js";
 import { ERROR_ALPHA, ERROR_RAMP, NO_VALUE, rampColour, rampGradient } from "./ramp.js";
 
 export class AccuracyOverlay {
@@ -76,25 +77,11 @@ export class AccuracyOverlay {
     const top = finite.length
       ? Math.max(0.5, Math.ceil(2 * finite[Math.floor(0.95 * (finite.length - 1))]) / 2)
       : 1;
-    const canvas = document.createElement("canvas");
-    canvas.width = field.nx;
-    canvas.height = field.ny;
-    const context = canvas.getContext("2d");
-    const image = context.createImageData(field.nx, field.ny);
-    field.values.forEach((sigma, i) => {
-      const rgba = Number.isFinite(sigma)
+    const { node } = showGrid(this.plan, "heatmap", grid, field.ny, field.nx, (r, c) => {
+      const sigma = field.values[r * field.nx + c];
+      return Number.isFinite(sigma)
         ? [...rampColour(ERROR_RAMP, sigma / top), ERROR_ALPHA]
         : NO_VALUE;
-      image.data.set(rgba, 4 * i);
-    });
-    context.putImageData(image, 0, 0);
-    // canvas row 0 is grid row 0 (at y0); the plan's flipped y puts it at the bottom
-    const node = this.plan.showImage("heatmap", {
-      href: canvas.toDataURL(),
-      x: grid.origin[0],
-      y: grid.origin[1],
-      width: field.nx * grid.cell,
-      height: field.ny * grid.cell,
     });
     node.dataset.shape = `${field.ny}x${field.nx}`;
     const unobservable = field.values.length - finite.length;
@@ -121,10 +108,7 @@ export class AccuracyOverlay {
  */
 function horizontalSigma(grid) {
   const [ny, nx] = grid?.shape ?? [];
-  const rowsOk = (rows) =>
-    Array.isArray(rows) &&
-    rows.length === ny &&
-    rows.every((r) => Array.isArray(r) && r.length === nx);
+  const rowsOk = (rows) => hasShape(rows, ny, nx);
   if (!(ny > 0 && nx > 0 && grid.cell > 0 && rowsOk(grid.sigma_x) && rowsOk(grid.sigma_y))) {
     throw new Error("the answer does not match the contract (shape, cell, sigma_x, sigma_y)");
   }

@@ -3,6 +3,7 @@
 // uPlot (app/web/vendor) is a classic script loaded before this module: the global uPlot.
 
 import { ApiError } from "./api.js";
+import { showGrid } from "./grid.js";
 import { rampColour } from "./ramp.js";
 
 // Few device-seconds pale yellow, many dark red (RGB stops, evenly spaced up to the top).
@@ -96,26 +97,10 @@ export class AnalyticsView {
         }
       }
     }
-    const canvas = document.createElement("canvas");
-    canvas.width = nx;
-    canvas.height = ny;
-    const context = canvas.getContext("2d");
-    const image = context.createImageData(nx, ny);
-    grid.seconds.forEach((row, r) =>
-      row.forEach((v, c) => {
-        // cells outside the outline, or never visited, stay transparent
-        if (v === null || v <= 0) return;
-        image.data.set([...rampColour(RAMP, v / (top || 1)), ALPHA], 4 * (r * nx + c));
-      }),
-    );
-    context.putImageData(image, 0, 0);
-    // canvas row 0 is grid row 0 (at y0); the plan's flipped y puts it at the bottom
-    const node = this.plan.showImage("heatmap", {
-      href: canvas.toDataURL(),
-      x: grid.origin[0],
-      y: grid.origin[1],
-      width: nx * grid.cell,
-      height: ny * grid.cell,
+    const { node } = showGrid(this.plan, "heatmap", grid, ny, nx, (r, c) => {
+      const v = grid.seconds[r][c];
+      // cells outside the outline, or never visited, stay transparent
+      return v === null || v <= 0 ? null : [...rampColour(RAMP, v / (top || 1)), ALPHA];
     });
     node.dataset.total = String(total);
     this.drawn = true;

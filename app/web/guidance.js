@@ -3,6 +3,7 @@
 // drawn under the plan so an admin sees where to survey next.
 
 import { ApiError } from "./api.js";
+import { hasShape, showGrid } from "./grid.js";
 import { ERROR_ALPHA, ERROR_RAMP, NO_VALUE, rampColour, rampGradient } from "./ramp.js";
 
 export class GuidanceOverlay {
@@ -66,30 +67,11 @@ export class GuidanceOverlay {
     // the scale runs to twice the build's "needs more survey" threshold: the threshold is
     // the ramp's middle (yellow), the same top as the server's PNG
     const top = 2 * grid.params.high_error_m;
-    const canvas = document.createElement("canvas");
-    canvas.width = nx;
-    canvas.height = ny;
-    const context = canvas.getContext("2d");
-    const image = context.createImageData(nx, ny);
-    let coloured = 0;
-    for (let r = 0; r < ny; r++) {
-      for (let c = 0; c < nx; c++) {
-        // outside the walkable area the cell stays transparent
-        if (!grid.walkable[r][c]) continue;
-        const e = grid.expected_error_m[r][c];
-        const rgba = e === null ? NO_VALUE : [...rampColour(ERROR_RAMP, e / top), ERROR_ALPHA];
-        image.data.set(rgba, 4 * (r * nx + c));
-        coloured++;
-      }
-    }
-    context.putImageData(image, 0, 0);
-    // canvas row 0 is grid row 0 (at y0); the plan's flipped y puts it at the bottom
-    const node = this.plan.showImage("heatmap", {
-      href: canvas.toDataURL(),
-      x: grid.origin[0],
-      y: grid.origin[1],
-      width: nx * grid.cell,
-      height: ny * grid.cell,
+    const { node, coloured } = showGrid(this.plan, "heatmap", grid, ny, nx, (r, c) => {
+      // outside the walkable area the cell stays transparent
+      if (!grid.walkable[r][c]) return null;
+      const e = grid.expected_error_m[r][c];
+      return e === null ? NO_VALUE : [...rampColour(ERROR_RAMP, e / top), ERROR_ALPHA];
     });
     node.dataset.shape = `${ny}x${nx}`;
     node.dataset.cells = String(coloured);
@@ -117,10 +99,7 @@ export class GuidanceOverlay {
 /** Return [ny, nx] when the answer's grids have that shape; throw otherwise. */
 function checkedShape(grid) {
   const [ny, nx] = grid?.shape ?? [];
-  const rowsOk = (rows) =>
-    Array.isArray(rows) &&
-    rows.length === ny &&
-    rows.every((r) => Array.isArray(r) && r.length === nx);
+  const rowsOk = (rows) => hasShape(rows, ny, nx);
   if (
     !(ny > 0 && nx > 0 && grid.cell > 0 && grid.params?.high_error_m > 0) ||
     !rowsOk(grid.walkable) ||
